@@ -1,0 +1,49 @@
+// Hand-written vector kernels the models need, float32, row-major. Each has a plain reference test.
+#pragma once
+
+#include <cstdint>
+
+namespace tether::cpu {
+
+// LayerNorm over the last dimension (rows x n): (x - mean) / sqrt(var + eps) * gamma + beta.
+void layer_norm(const float* x, int64_t rows, int64_t n, const float* gamma, const float* beta, float eps, float* y);
+
+// Llama RMSNorm: x * rsqrt(mean(x^2) + eps) * weight, computed in float32.
+void rms_norm(const float* x, int64_t rows, int64_t n, const float* weight, float eps, float* y);
+
+// Rotary embedding in place on x[B, L, H, D] (contiguous), "split halves" layout as in lerobot's apply_rope:
+// first half i pairs with second half i, frequency max_wavelength^(-2i/D), angle = position / timescale.
+// positions is [B, L].
+void rope(float* x, int64_t batch, int64_t len, int64_t heads, int64_t head_dim, const int64_t* positions,
+          float max_wavelength);
+
+// Masked grouped-query attention.
+// q: [B, Lq, H, D] with row stride q_stride between tokens (elements); k, v: [B, Lk, KvH, D] with token stride
+// kv_stride; mask: [B, Lq, Lk] bytes, nonzero = may attend (null = attend everywhere). out: [B, Lq, H*D].
+// Scores are scaled by `scale`; masked scores become the lowest float (not -inf) so a fully masked row
+// softmaxes to uniform, exactly as the reference does.
+void attention(const float* q, int64_t q_stride, const float* k, const float* v, int64_t kv_stride,
+               const uint8_t* mask, int64_t batch, int64_t len_q, int64_t len_k, int64_t heads, int64_t kv_heads,
+               int64_t head_dim, float scale, float* out);
+
+void softmax_rows(float* x, int64_t rows, int64_t n);
+
+// Activations, in place.
+void gelu_tanh(float* x, int64_t n);
+void silu(float* x, int64_t n);
+// out[i] = silu(gate[i]) * up[i]; out may alias gate.
+void silu_mul(const float* gate, const float* up, int64_t n, float* out);
+
+void add(const float* a, const float* b, int64_t n, float* out);  // out may alias a or b
+void scale(float* x, int64_t n, float s);
+
+// Conv2d with kernel = stride = patch (no padding), as a patch embedding.
+// pixels: [B, C, H, W]; weight: [E, C, P, P]; bias: [E]; out: [B, (H/P)*(W/P), E] (row-major patches).
+void patch_embed(const float* pixels, int64_t batch, int64_t channels, int64_t height, int64_t width,
+                 const float* weight, const float* bias, int64_t embed, int64_t patch, float* out);
+
+// Idefics3/SmolVLM pixel shuffle: x [B, S, E] with S a square number of patches (side = sqrt(S)) to
+// out [B, S / r^2, E * r^2], the exact element order of the upstream view/permute/reshape sequence.
+void pixel_shuffle(const float* x, int64_t batch, int64_t seq, int64_t embed, int64_t ratio, float* out);
+
+}  // namespace tether::cpu

@@ -1,0 +1,18 @@
+#include "core/json_util.h"
+
+#include <fstream>
+#include <sstream>
+
+namespace tether {
+
+Json read_json_file(const std::string& path) {
+  std::ifstream in(path);
+  if (!in) throw Error(ErrorCode::not_found, path + ": cannot open");
+  std::stringstream ss;
+  ss << in.rdbuf();
+  Json j = Json::parse(ss.str(), nullptr, /*allow_exceptions=*/false);
+  if (j.is_discarded()) throw Error(ErrorCode::format, path + ": not valid JSON");
+  return j;
+}
+
+}  // namespace tether

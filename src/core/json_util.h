@@ -1,0 +1,34 @@
+// Reading JSON config files with errors that name the file and the field at fault.
+#pragma once
+
+#include <nlohmann/json.hpp>
+#include <string>
+
+#include "core/error.h"
+
+namespace tether {
+
+using Json = nlohmann::json;
+
+Json read_json_file(const std::string& path);
+
+// `where` names the file (and object path) for the error message, e.g. "ckpt/config.json".
+template <typename T>
+T json_get(const Json& j, const std::string& key, const std::string& where) {
+  auto it = j.find(key);
+  if (it == j.end() || it->is_null()) throw Error(ErrorCode::not_found, where + ": missing field '" + key + "'");
+  try {
+    return it->get<T>();
+  } catch (const nlohmann::json::exception&) {
+    throw Error(ErrorCode::format, where + ": field '" + key + "' has the wrong type (" + it->dump() + ")");
+  }
+}
+
+template <typename T>
+T json_get_or(const Json& j, const std::string& key, T fallback, const std::string& where) {
+  auto it = j.find(key);
+  if (it == j.end() || it->is_null()) return fallback;
+  return json_get<T>(j, key, where);
+}
+
+}  // namespace tether
