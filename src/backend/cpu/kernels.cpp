@@ -1,0 +1,272 @@
+// Float32 vector kernels (norms, RoPE, activations, patch embedding, pixel shuffle).
+// Built with -ffp-contract=off (see CMakeLists) so each multiply and add rounds separately, as in PyTorch.
+#include "backend/cpu/kernels.h"
+
+#include <omp.h>
+
+#include <algorithm>
+#include <cmath>
+#include <cstring>
+#include <string>
+#include <vector>
+
+#include "backend/cpu/gemm.h"
+#include "backend/cpu/vec_math.h"
+#include "core/error.h"
+
+namespace tether::cpu {
+namespace {
+
+// Below this many elements an OpenMP fork costs more than it saves.
+constexpr int64_t kParallelMin = 1 << 15;
+
+// Runs body(begin, end) over [0, n) split into one contiguous, 16-aligned chunk per thread. The simd
+// loops stay in plain functions: GCC does not vectorise them inside `parallel for simd` outlining.
+template <typename Body>
+void for_chunks(int64_t n, Body&& body) {
+  if (n < kParallelMin || omp_in_parallel()) {
+    body(int64_t(0), n);
+    return;
+  }
+#pragma omp parallel
+  {
+    const int64_t threads = omp_get_num_threads();
+    const int64_t per = ((n + threads - 1) / threads + 15) / 16 * 16;
+    const int64_t begin = std::min(n, per * omp_get_thread_num());
+    const int64_t end = std::min(n, begin + per);
+    if (begin < end) body(begin, end);
+  }
+}
+
+void require(bool ok, const char* kernel, const std::string& what) {
+  if (!ok) throw Error(ErrorCode::invalid_argument, std::string(kernel) + ": " + what);
+}
+
+}  // namespace
+
+void layer_norm(const float* x, int64_t rows, int64_t n, const float* gamma, const float* beta, float eps,
+                float* y) {
+  require(n > 0, "layer_norm", "row length must be positive");
+#pragma omp parallel for schedule(static) if (rows * n >= kParallelMin)
+  for (int64_t r = 0; r < rows; ++r) {
+    const float* xr = x + r * n;
+    float* yr = y + r * n;
+    // Moments in double: PyTorch's float Welford pass is close to exact, plain float sums are not.
+    double sum = 0.0;
+#pragma omp simd reduction(+ : sum)
+    for (int64_t i = 0; i < n; ++i) sum += xr[i];
+    const double mean = sum / double(n);
+    double sq = 0.0;
+#pragma omp simd reduction(+ : sq)
+    for (int64_t i = 0; i < n; ++i) {
+      const double d = double(xr[i]) - mean;
+      sq += d * d;
+    }
+    const float mean_f = float(mean);
+    const float rstd = 1.0f / std::sqrt(float(sq / double(n)) + eps);
+    const float shift = -rstd * mean_f;
+    // Same association as PyTorch's CPU layer norm: (x * rstd + (-rstd * mean)) * gamma + beta.
+#pragma omp simd
+    for (int64_t i = 0; i < n; ++i) {
+      float v = xr[i] * rstd + shift;
+      if (gamma) v = v * gamma[i];
+      if (beta) v = v + beta[i];
+      yr[i] = v;
+    }
+  }
+}
+
+void rms_norm(const float* x, int64_t rows, int64_t n, const float* weight, float eps, float* y) {
+  require(n > 0, "rms_norm", "row length must be positive");
+#pragma omp parallel for schedule(static) if (rows * n >= kParallelMin)
+  for (int64_t r = 0; r < rows; ++r) {
+    const float* xr = x + r * n;
+    float* yr = y + r * n;
+    double sq = 0.0;
+#pragma omp simd reduction(+ : sq)
+    for (int64_t i = 0; i < n; ++i) sq += double(xr[i]) * double(xr[i]);
+    // The variance is a float32 tensor upstream; rsqrt is 1 / sqrt, each rounded.
+    const float var = float(sq / double(n));
+    const float inv = 1.0f / std::sqrt(var + eps);
+    if (weight) {
+#pragma omp simd
+      for (int64_t i = 0; i < n; ++i) yr[i] = weight[i] * (xr[i] * inv);
+    } else {
+#pragma omp simd
+      for (int64_t i = 0; i < n; ++i) yr[i] = xr[i] * inv;
+    }
+  }
+}
+
+void rope(float* x, int64_t batch, int64_t len, int64_t heads, int64_t head_dim, const int64_t* positions,
+          float max_wavelength) {
+  require(head_dim > 0 && head_dim % 2 == 0, "rope", "head_dim must be even, got " + std::to_string(head_dim));
+  const int64_t half = head_dim / 2;
+  // timescale[i] = max_wavelength ** (float(2 / D) * i), a float32 power; computing it in double and
+  // rounding once gives the correctly rounded float.
+  thread_local std::vector<float> timescale;
+  timescale.resize(std::size_t(half));
+  const float step = float(2.0 / double(head_dim));
+  for (int64_t i = 0; i < half; ++i) {
+    const float exponent = step * float(i);
+    timescale[std::size_t(i)] = float(std::pow(double(max_wavelength), double(exponent)));
+  }
+  const float* ts = timescale.data();
+  const int64_t tokens = batch * len;
+#pragma omp parallel if (tokens * heads * head_dim >= kParallelMin)
+  {
+    thread_local std::vector<float> sin_cos;
+    sin_cos.resize(std::size_t(2 * half));
+    float* sn = sin_cos.data();
+    float* cs = sn + half;
+#pragma omp for schedule(static)
+    for (int64_t t = 0; t < tokens; ++t) {
+      const float pos = float(positions[t]);
+      for (int64_t i = 0; i < half; ++i) {
+        const float radians = pos / ts[i];
+        sn[i] = std::sin(radians);
+        cs[i] = std::cos(radians);
+      }
+      for (int64_t h = 0; h < heads; ++h) {
+        float* x1 = x + (t * heads + h) * head_dim;
+        float* x2 = x1 + half;
+#pragma omp simd
+        for (int64_t i = 0; i < half; ++i) {
+          const float a = x1[i];
+          const float b = x2[i];
+          x1[i] = a * cs[i] - b * sn[i];
+          x2[i] = b * cs[i] + a * sn[i];
+        }
+      }
+    }
+  }
+}
+
+void softmax_rows(float* x, int64_t rows, int64_t n) {
+  if (n <= 0) return;
+#pragma omp parallel for schedule(static) if (rows * n >= kParallelMin)
+  for (int64_t r = 0; r < rows; ++r) softmax_row(x + r * n, n);
+}
+
+void softmax_row(float* x, int64_t n) {
+  float mx = x[0];
+#pragma omp simd reduction(max : mx)
+  for (int64_t i = 0; i < n; ++i) mx = x[i] > mx ? x[i] : mx;
+  float sum = 0.0f;
+#pragma omp simd reduction(+ : sum)
+  for (int64_t i = 0; i < n; ++i) {
+    const float e = detail::exp_f32(x[i] - mx);
+    x[i] = e;
+    sum += e;
+  }
+  const float inv = 1.0f / sum;
+#pragma omp simd
+  for (int64_t i = 0; i < n; ++i) x[i] = x[i] * inv;
+}
+
+void gelu_tanh(float* x, int64_t n) {
+  for_chunks(n, [x](int64_t begin, int64_t end) {
+    // sqrt(2/pi) and the cubic coefficient of the tanh approximation, as float32 constants.
+    constexpr float kBeta = float(0.79788456080286535588);
+    constexpr float kKappa = 0.044715f;
+#pragma omp simd
+    for (int64_t i = begin; i < end; ++i) {
+      const float v = x[i];
+      const float cube = v * v * v;
+      const float inner = kBeta * (v + kKappa * cube);
+      // 0.5 * (1 + tanh(u)) == 1 / (1 + exp(-2u)), which needs only exp and stays accurate for all u.
+      x[i] = v / (1.0f + detail::exp_f32(-2.0f * inner));
+    }
+  });
+}
+
+void silu(float* x, int64_t n) {
+  for_chunks(n, [x](int64_t begin, int64_t end) {
+#pragma omp simd
+    for (int64_t i = begin; i < end; ++i) x[i] = x[i] / (1.0f + detail::exp_f32(-x[i]));
+  });
+}
+
+void silu_mul(const float* gate, const float* up, int64_t n, float* out) {
+  for_chunks(n, [=](int64_t begin, int64_t end) {
+#pragma omp simd
+    for (int64_t i = begin; i < end; ++i) {
+      const float g = gate[i];
+      out[i] = (g / (1.0f + detail::exp_f32(-g))) * up[i];
+    }
+  });
+}
+
+void add(const float* a, const float* b, int64_t n, float* out) {
+  for_chunks(n, [=](int64_t begin, int64_t end) {
+#pragma omp simd
+    for (int64_t i = begin; i < end; ++i) out[i] = a[i] + b[i];
+  });
+}
+
+void scale(float* x, int64_t n, float s) {
+  for_chunks(n, [=](int64_t begin, int64_t end) {
+#pragma omp simd
+    for (int64_t i = begin; i < end; ++i) x[i] = x[i] * s;
+  });
+}
+
+void patch_embed(const float* pixels, int64_t batch, int64_t channels, int64_t height, int64_t width,
+                 const float* weight, const float* bias, int64_t embed, int64_t patch, float* out) {
+  require(patch > 0 && height % patch == 0 && width % patch == 0, "patch_embed",
+          "image " + std::to_string(height) + "x" + std::to_string(width) + " is not a multiple of patch " +
+              std::to_string(patch));
+  const int64_t ph = height / patch;
+  const int64_t pw = width / patch;
+  const int64_t patches = ph * pw;
+  const int64_t col_len = channels * patch * patch;  // weight rows are [C, P, P] flattened
+  // One image's im2col matrix, reused across calls (about 3 MB for a 512x512 SigLIP input).
+  thread_local std::vector<float> cols;
+  cols.resize(std::size_t(patches * col_len));
+  float* col = cols.data();
+  for (int64_t b = 0; b < batch; ++b) {
+    const float* img = pixels + b * channels * height * width;
+#pragma omp parallel for schedule(static) if (patches * col_len >= kParallelMin)
+    for (int64_t p = 0; p < patches; ++p) {
+      const int64_t py = p / pw;
+      const int64_t px = p % pw;
+      float* dst = col + p * col_len;
+      for (int64_t c = 0; c < channels; ++c) {
+        for (int64_t ky = 0; ky < patch; ++ky) {
+          const float* src = img + (c * height + py * patch + ky) * width + px * patch;
+          std::memcpy(dst, src, sizeof(float) * std::size_t(patch));
+          dst += patch;
+        }
+      }
+    }
+    linear(col, patches, col_len, weight, bias, embed, out + b * patches * embed);
+  }
+}
+
+void pixel_shuffle(const float* x, int64_t batch, int64_t seq, int64_t embed, int64_t ratio, float* out) {
+  int64_t side = int64_t(std::llround(std::sqrt(double(seq))));
+  require(side * side == seq, "pixel_shuffle", "sequence length " + std::to_string(seq) + " is not a square");
+  require(ratio > 0 && side % ratio == 0, "pixel_shuffle",
+          "side " + std::to_string(side) + " is not divisible by ratio " + std::to_string(ratio));
+  const int64_t out_side = side / ratio;
+  const int64_t out_seq = out_side * out_side;
+  const int64_t out_embed = embed * ratio * ratio;
+  // Output token (i2, j2) holds, in order a = 0..r-1 then c = 0..r-1, the input token at grid position
+  // (i2*r + a, j2*r + c): the view/permute/reshape chain upstream reduces to this copy.
+#pragma omp parallel for schedule(static) if (batch * seq * embed >= kParallelMin)
+  for (int64_t t = 0; t < batch * out_seq; ++t) {
+    const int64_t b = t / out_seq;
+    const int64_t i2 = (t % out_seq) / out_side;
+    const int64_t j2 = t % out_side;
+    float* dst = out + t * out_embed;
+    for (int64_t a = 0; a < ratio; ++a) {
+      for (int64_t c = 0; c < ratio; ++c) {
+        const int64_t src_token = (i2 * ratio + a) * side + (j2 * ratio + c);
+        std::memcpy(dst + (a * ratio + c) * embed, x + (b * seq + src_token) * embed,
+                    sizeof(float) * std::size_t(embed));
+      }
+    }
+  }
+}
+
+}  // namespace tether::cpu

@@ -26,9 +26,14 @@ void attention(const float* q, int64_t q_stride, const float* k, const float* v,
                const uint8_t* mask, int64_t batch, int64_t len_q, int64_t len_k, int64_t heads, int64_t kv_heads,
                int64_t head_dim, float scale, float* out);
 
+// Softmax over each row of length n, in place: exp(x - max) / sum, with the sum's reciprocal applied as
+// a multiply. A row of equal values (e.g. all masked) becomes uniform.
 void softmax_rows(float* x, int64_t rows, int64_t n);
+// One row, single-threaded (for callers already inside a parallel region).
+void softmax_row(float* x, int64_t n);
 
-// Activations, in place.
+// Activations, in place. gelu_tanh is PyTorch's GELU(approximate="tanh") (transformers'
+// "gelu_pytorch_tanh"); silu is x * sigmoid(x). Both are within a few ulp of the exact functions.
 void gelu_tanh(float* x, int64_t n);
 void silu(float* x, int64_t n);
 // out[i] = silu(gate[i]) * up[i]; out may alias gate.

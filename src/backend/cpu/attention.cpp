@@ -1,0 +1,83 @@
+// Masked grouped-query attention: per (batch, head, block of queries) one BLAS product for the scores,
+// a scale/mask/softmax pass, and one BLAS product with V, in the order lerobot's eager attention uses.
+#include <cblas.h>
+
+#include <algorithm>
+#include <limits>
+#include <string>
+#include <vector>
+
+#include "backend/cpu/kernels.h"
+#include "core/error.h"
+
+namespace tether::cpu {
+namespace {
+
+constexpr int64_t kQueryBlock = 32;
+
+void require(bool ok, const std::string& what) {
+  if (!ok) throw Error(ErrorCode::invalid_argument, "attention: " + what);
+}
+
+}  // namespace
+
+void attention(const float* q, int64_t q_stride, const float* k, const float* v, int64_t kv_stride,
+               const uint8_t* mask, int64_t batch, int64_t len_q, int64_t len_k, int64_t heads, int64_t kv_heads,
+               int64_t head_dim, float scale, float* out) {
+  require(heads > 0 && kv_heads > 0 && heads % kv_heads == 0,
+          std::to_string(heads) + " heads cannot share " + std::to_string(kv_heads) + " kv heads");
+  require(head_dim > 0, "head_dim must be positive");
+  require(q_stride >= heads * head_dim, "q_stride " + std::to_string(q_stride) + " < heads * head_dim");
+  require(kv_stride >= kv_heads * head_dim, "kv_stride " + std::to_string(kv_stride) + " < kv_heads * head_dim");
+  require(len_k > 0 || len_q == 0, "no keys to attend to");
+  require(len_k <= std::numeric_limits<int>::max() && q_stride <= std::numeric_limits<int>::max() &&
+              kv_stride <= std::numeric_limits<int>::max(),
+          "sizes exceed the BLAS integer range");
+  if (batch <= 0 || len_q <= 0) return;
+
+  const int64_t groups = heads / kv_heads;
+  const int64_t out_stride = heads * head_dim;
+  // Tasks are (item, head, block of queries). The block size depends on nothing but len_q: BLAS results
+  // depend on where a row falls in the product (edge kernels sum in another order), so a block layout
+  // that varied with the batch size or the thread count would make an item's output depend on them.
+  // Blocks of at most 32 rows also give 2 threads an even split for the expert's 50 queries x 15 heads.
+  const int64_t block = std::min<int64_t>(len_q, kQueryBlock);
+  const int64_t blocks = (len_q + block - 1) / block;
+  const int64_t tasks = batch * heads * blocks;
+  const bool parallel = tasks > 1 && batch * heads * len_q * len_k * head_dim >= (1 << 16);
+  constexpr float kMasked = std::numeric_limits<float>::lowest();
+
+#pragma omp parallel for schedule(dynamic) if (parallel)
+  for (int64_t task = 0; task < tasks; ++task) {
+    const int64_t b = task / (heads * blocks);
+    const int64_t h = (task / blocks) % heads;
+    const int64_t q0 = (task % blocks) * block;
+    const int rows = int(std::min(block, len_q - q0));
+    // Scores for one block, reused across calls; BLAS inside a parallel region runs single-threaded.
+    thread_local std::vector<float> scores;
+    if (scores.size() < std::size_t(block * len_k)) scores.resize(std::size_t(block * len_k));
+    float* s = scores.data();
+    const float* qp = q + (b * len_q + q0) * q_stride + h * head_dim;
+    const float* kp = k + b * len_k * kv_stride + (h / groups) * head_dim;
+    const float* vp = v + b * len_k * kv_stride + (h / groups) * head_dim;
+    cblas_sgemm(CblasRowMajor, CblasNoTrans, CblasTrans, rows, int(len_k), int(head_dim), 1.0f, qp,
+                int(q_stride), kp, int(kv_stride), 0.0f, s, int(len_k));
+    for (int r = 0; r < rows; ++r) {
+      float* sr = s + r * len_k;
+      // The scale multiplies the finished dot products (not q), as upstream does.
+      if (mask) {
+        const uint8_t* mr = mask + (b * len_q + q0 + r) * len_k;
+#pragma omp simd
+        for (int64_t j = 0; j < len_k; ++j) sr[j] = mr[j] ? sr[j] * scale : kMasked;
+      } else {
+#pragma omp simd
+        for (int64_t j = 0; j < len_k; ++j) sr[j] = sr[j] * scale;
+      }
+      softmax_row(sr, len_k);
+    }
+    cblas_sgemm(CblasRowMajor, CblasNoTrans, CblasNoTrans, rows, int(head_dim), int(len_k), 1.0f, s, int(len_k),
+                vp, int(kv_stride), 0.0f, out + (b * len_q + q0) * out_stride + h * head_dim, int(out_stride));
+  }
+}
+
+}  // namespace tether::cpu
