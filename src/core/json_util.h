@@ -8,7 +8,8 @@
 
 namespace tether {
 
-using Json = nlohmann::json;
+// Ordered: lerobot configs carry meaning in key order (the camera order of input_features).
+using Json = nlohmann::ordered_json;
 
 Json read_json_file(const std::string& path);
 
