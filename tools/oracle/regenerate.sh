@@ -1,0 +1,17 @@
+#!/usr/bin/env bash
+# Regenerates every committed oracle fixture and the demo policy (outside the default test run).
+set -euo pipefail
+here="$(cd "$(dirname "${BASH_SOURCE[0]}")" && pwd)"
+root="$(cd "$here/../.." && pwd)"
+"$here/setup.sh"
+# optional generators owned by the text and vision layers; run whichever exist
+for gen in tokenizer_fixtures.py vision_fixtures.py; do
+  if [[ -f "$here/$gen" ]]; then
+    echo "== $gen"
+    "$here/run.sh" "$here/$gen"
+  fi
+done
+echo "== smolvla fixtures"
+"$here/run.sh" "$here/smolvla_oracle.py" fixtures --out "$root/tests/fixtures/smolvla"
+echo "== demo policy"
+"$here/run.sh" "$here/smolvla_oracle.py" demo --out "$root/models/demo"
