@@ -174,8 +174,8 @@ void gelu_tanh(float* x, int64_t n) {
       const float v = x[i];
       const float cube = v * v * v;
       const float inner = kBeta * (v + kKappa * cube);
-      // 0.5 * (1 + tanh(u)) == 1 / (1 + exp(-2u)), which needs only exp and stays accurate for all u.
-      x[i] = v / (1.0f + detail::exp_f32(-2.0f * inner));
+      // The same float32 steps as PyTorch's formula; only tanh itself may differ by an ulp.
+      x[i] = 0.5f * v * (1.0f + detail::tanh_f32(inner));
     }
   });
 }

@@ -41,4 +41,20 @@ inline float exp_f32(float x) {
   return x != x ? x : result;  // NaN in, NaN out
 }
 
+// tanh(x) to within about 2 ulp: an odd polynomial below |x| = 0.625 (Cephes' tanhf coefficients),
+// 1 - 2 / (exp(2|x|) + 1) above, both evaluated and one selected so the loop stays branch-free.
+inline float tanh_f32(float x) {
+  const float ax = x < 0.0f ? -x : x;
+  const float z = x * x;
+  float p = -5.70498872745e-3f;
+  p = p * z + 2.06390887954e-2f;
+  p = p * z - 5.37397155531e-2f;
+  p = p * z + 1.33314422036e-1f;
+  p = p * z - 3.33332819422e-1f;
+  const float small = p * z * x + x;
+  const float big_abs = 1.0f - 2.0f / (exp_f32(2.0f * ax) + 1.0f);
+  const float big = x < 0.0f ? -big_abs : big_abs;
+  return ax < 0.625f ? small : big;
+}
+
 }  // namespace tether::cpu::detail
