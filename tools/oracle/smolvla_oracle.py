@@ -281,7 +281,6 @@ def build_checkpoint(
     tok: Tokenizer,
     stats: dict | None,
     dtype: torch.dtype,
-    perturb: bool = True,
 ) -> None:
     if ckpt.exists():
         shutil.rmtree(ckpt)
@@ -290,8 +289,7 @@ def build_checkpoint(
     with working_dir(ckpt):
         torch.manual_seed(seed)
         policy = SmolVLAPolicy(cfg)
-        if perturb:
-            perturb_constant_params(policy, torch.Generator().manual_seed(seed + 1))
+        perturb_constant_params(policy, torch.Generator().manual_seed(seed + 1))
         policy.to(dtype)
         policy.save_pretrained(ckpt)
         pre, post = make_smolvla_pre_post_processors(cfg, dataset_stats=stats)
@@ -331,6 +329,38 @@ def draw_scene(h: int, w: int, seed: int) -> Image.Image:
     cx, cy, r = int(gen.integers(8, w - 8)), int(gen.integers(8, h - 8)), int(gen.integers(4, 12))
     draw.ellipse([cx - r, cy - r, cx + r, cy + r], fill=tuple(int(c) for c in gen.integers(0, 256, 3)))
     draw.line([0, h - 1, w - 1, int(gen.integers(0, h))], fill=(250, 250, 250), width=2)
+    return img
+
+
+def draw_demo_scene(h: int = 480, w: int = 640) -> Image.Image:
+    """A front-camera view for the demo: wall, wooden table, a red cube, a blue bowl and a gripper."""
+    yy, xx = np.mgrid[0:h, 0:w].astype(np.float32)
+    wall = np.stack([200 - yy * 0.08, 205 - yy * 0.08, 212 - yy * 0.06], -1)
+    horizon = int(h * 0.38)
+    grain = 8.0 * np.sin(xx * 0.05 + yy * 0.012) + 4.0 * np.sin(xx * 0.21 + yy * 0.03)
+    wood = np.stack([150 + grain + yy * 0.05, 105 + grain * 0.8 + yy * 0.04, 70 + grain * 0.5], -1)
+    arr = np.where((yy >= horizon)[..., None], wood, wall)
+    img = Image.fromarray(np.clip(arr, 0, 255).astype(np.uint8), "RGB")
+    d = ImageDraw.Draw(img)
+    d.rectangle([0, horizon - 3, w, horizon + 2], fill=(96, 64, 40))  # table edge
+    s = h / 480.0
+    # red cube: front face, top face, side face
+    cx, cy, e = int(0.30 * w), int(0.66 * h), int(70 * s)
+    d.ellipse([cx - e // 2, cy + e - 12 * s, cx + e * 1.2, cy + e + 14 * s], fill=(110, 75, 50))  # shadow
+    d.polygon([(cx, cy), (cx + e, cy), (cx + e, cy + e), (cx, cy + e)], fill=(200, 30, 35))
+    d.polygon([(cx, cy), (cx + 0.3 * e, cy - 0.3 * e), (cx + 1.3 * e, cy - 0.3 * e), (cx + e, cy)], fill=(235, 70, 70))
+    d.polygon([(cx + e, cy), (cx + 1.3 * e, cy - 0.3 * e), (cx + 1.3 * e, cy + 0.7 * e), (cx + e, cy + e)], fill=(150, 20, 25))
+    # blue bowl
+    bx, by, bw, bh = int(0.66 * w), int(0.70 * h), int(150 * s), int(50 * s)
+    d.ellipse([bx - bw // 2 - 6, by + bh // 2, bx + bw // 2 + 10, by + int(1.5 * bh)], fill=(110, 75, 50))
+    d.chord([bx - bw // 2, by - bh // 2, bx + bw // 2, by + int(1.6 * bh)], 0, 180, fill=(30, 70, 170))
+    d.ellipse([bx - bw // 2, by - bh // 2, bx + bw // 2, by + bh // 2], fill=(60, 110, 210))
+    d.ellipse([bx - bw // 2 + 10, by - bh // 2 + 6, bx + bw // 2 - 10, by + bh // 2 - 4], fill=(20, 45, 120))
+    # gripper fingers coming from the top of the frame
+    gx = int(0.47 * w)
+    d.rectangle([gx - 40 * s, 0, gx + 40 * s, 70 * s], fill=(70, 72, 78))
+    d.rectangle([gx - 36 * s, 70 * s, gx - 22 * s, 150 * s], fill=(95, 97, 104))
+    d.rectangle([gx + 22 * s, 70 * s, gx + 36 * s, 150 * s], fill=(95, 97, 104))
     return img
 
 
@@ -822,7 +852,7 @@ def cmd_full_size(args) -> None:
     stats = make_stats(cfg, np.random.default_rng(5), degenerate_dim=False)
     build_checkpoint(
         out, cfg, seed=5, text=FULL_TEXT, vision=FULL_VISION, scale_factor=4, tok=tok, stats=stats,
-        dtype=torch.bfloat16, perturb=False,
+        dtype=torch.bfloat16,
     )
     (out / "README.md").write_text(
         "Random-weight SmolVLA checkpoint with SmolVLM2-500M / lerobot smolvla_base shapes, for benchmarks only.\n"
@@ -869,7 +899,7 @@ def cmd_demo(args) -> None:
         ckpt, cfg, seed=42, text=TINY_TEXT, vision=TINY_VISION, scale_factor=2, tok=tok, stats=stats,
         dtype=torch.float32,
     )
-    sample = draw_scene(480, 640, seed=7)
+    sample = draw_demo_scene(480, 640)
     sample.save(out / "sample.png", format="PNG", optimize=True)
     # prove the demo loads and runs through upstream
     img = decode_image(out / "sample.png")[None]
