@@ -1,2 +1,32 @@
+// Entry point of the `tether` binary: dispatches to one verb per file, maps errors to one-line messages.
 #include <cstdio>
-int main() { std::puts("tether"); return 0; }
+#include <iostream>
+
+#include "cli/commands.h"
+#include "core/error.h"
+
+int main(int argc, char** argv) {
+  CLI::App app{"tether: deploy Vision-Language-Action robot policies"};
+  app.require_subcommand(1);
+  app.set_version_flag("--version", std::string("tether ") + TETHER_VERSION);
+  std::vector<std::pair<CLI::App*, std::function<int()>>> verbs;
+  auto add = [&](std::function<int()> run) { verbs.push_back({app.get_subcommands().back(), std::move(run)}); };
+  add(tether::cli::add_predict(app));
+  try {
+    app.parse(argc, argv);
+  } catch (const CLI::ParseError& e) {
+    const int rc = app.exit(e);
+    return rc == 0 ? 0 : tether::cli::kExitUsage;
+  }
+  try {
+    for (auto& [sub, run] : verbs)
+      if (sub->parsed()) return run();
+  } catch (const tether::Error& e) {
+    std::cerr << "error: " << e.what() << "\n";
+    return e.code() == tether::ErrorCode::internal ? tether::cli::kExitCheckFailed : tether::cli::kExitUsage;
+  } catch (const std::exception& e) {
+    std::cerr << "error: " << e.what() << "\n";
+    return tether::cli::kExitCheckFailed;
+  }
+  return tether::cli::kExitUsage;
+}

@@ -1,0 +1,75 @@
+// The interface every model family implements, and the registry that maps a checkpoint's "type" to one.
+#pragma once
+
+#include <cstdint>
+#include <functional>
+#include <map>
+#include <memory>
+#include <optional>
+#include <string>
+#include <vector>
+
+#include "core/json_util.h"
+#include "core/tensor.h"
+#include "vision/image.h"
+
+namespace tether::models {
+
+// One observation as the model sees it: state already normalised by the policy layer.
+struct ModelInput {
+  std::map<std::string, vision::Image> images;  // camera key as the checkpoint names it -> RGB image
+  std::vector<float> state;                     // normalised, unpadded (state_dim values)
+  std::string instruction;
+  std::vector<float> noise;  // [chunk_size, max_action_dim]; empty -> drawn from `seed`
+  uint64_t seed = 0;
+};
+
+struct StageTimings {
+  double preprocess_ms = 0, vision_ms = 0, prefix_ms = 0, denoise_ms = 0;
+};
+
+struct ModelOutput {
+  int64_t batch = 0, chunk_size = 0, action_dim = 0;
+  std::vector<float> actions;                       // [batch, chunk_size, action_dim], normalised
+  std::vector<std::vector<std::string>> warnings;  // per item
+  StageTimings timings;
+};
+
+struct ModelSpec {
+  std::string family;
+  std::vector<std::string> cameras;  // camera keys in model order
+  std::string state_key = "observation.state", action_key = "action";
+  int64_t state_dim = 0, action_dim = 0, chunk_size = 0, num_steps = 0;
+  int64_t max_state_dim = 0, max_action_dim = 0;
+  int64_t image_height = 0, image_width = 0;  // what the vision tower receives
+  std::string weights_dtype;                   // as stored in the checkpoint
+};
+
+// Called with named intermediates ("mid.vision.<camera>", "mid.prefix_k.0", ...) when set: parity failures are
+// located by comparing these with the oracle's, not by guessing.
+using DebugHook = std::function<void(const std::string& name, const Tensor& value)>;
+
+class Model {
+ public:
+  virtual ~Model() = default;
+  virtual const ModelSpec& spec() const = 0;
+  virtual ModelOutput predict(const std::vector<ModelInput>& batch) = 0;
+  void set_debug_hook(DebugHook hook) { debug_ = std::move(hook); }
+
+ protected:
+  void dump(const std::string& name, const Tensor& t) const {
+    if (debug_) debug_(name, t);
+  }
+  bool dumping() const { return bool(debug_); }
+  DebugHook debug_;
+};
+
+// Loads the family named by config["type"] from a checkpoint directory.
+std::unique_ptr<Model> load_model(const std::string& checkpoint_dir, const Json& policy_config);
+std::vector<std::string> model_families();
+
+// Standard-normal noise from a seed: the same seed gives the same noise on every platform (explicit
+// Box-Muller over a 64-bit Mersenne Twister, not std::normal_distribution, whose algorithm varies).
+void seeded_normal(uint64_t seed, float* out, int64_t n);
+
+}  // namespace tether::models

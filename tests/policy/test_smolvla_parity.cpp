@@ -1,0 +1,111 @@
+// SmolVLA parity: every oracle fixture case is run through Tether end to end (image files, robot-unit state,
+// instruction, the oracle's noise) and compared with upstream lerobot, intermediates included.
+#include <gtest/gtest.h>
+
+#include <cmath>
+#include <cstdio>
+#include <filesystem>
+#include <map>
+
+#include "core/safetensors.h"
+#include "policy/policy.h"
+
+using namespace tether;
+namespace fs = std::filesystem;
+
+namespace {
+
+struct Captured {
+  Shape shape;
+  std::vector<float> values;
+};
+
+std::vector<std::string> cases() {
+  std::vector<std::string> out;
+  const fs::path root = fs::path(TETHER_FIXTURES_DIR) / "smolvla";
+  if (!fs::exists(root)) return out;
+  for (const auto& e : fs::directory_iterator(root))
+    if (fs::exists(e.path() / "oracle.safetensors")) out.push_back(e.path().filename().string());
+  std::sort(out.begin(), out.end());
+  return out;
+}
+
+double max_abs_diff(const std::vector<float>& a, const std::vector<float>& b) {
+  double m = 0;
+  for (std::size_t i = 0; i < a.size(); ++i) m = std::max(m, std::fabs(double(a[i]) - double(b[i])));
+  return m;
+}
+
+// Tolerances: fp32 end to end. Intermediates deep in the network accumulate GEMM reordering noise, so they get a
+// looser bound than the target the issue sets for the action chunk.
+double tolerance(const std::string& name) {
+  if (name.rfind("pre.", 0) == 0) return 1e-6;
+  if (name.rfind("out.", 0) == 0) return 1e-5;
+  return 1e-4;
+}
+
+class SmolVLAParity : public ::testing::TestWithParam<std::string> {};
+
+TEST_P(SmolVLAParity, MatchesUpstream) {
+  const fs::path dir = fs::path(TETHER_FIXTURES_DIR) / "smolvla" / GetParam();
+  const SafeTensorsFile oracle = SafeTensorsFile::open((dir / "oracle.safetensors").string());
+  const Json cameras = Json::parse(oracle.metadata().at("cameras"));
+  const Json instructions = Json::parse(oracle.metadata().at("instructions"));
+  const Json files = Json::parse(oracle.metadata().at("input_files"));
+
+  auto policy = policy::Policy::load((dir / "checkpoint").string());
+  const auto& spec = policy->spec();
+  const Tensor state = oracle.get("input.state");
+  const Tensor noise = oracle.get("input.noise");
+  const int64_t B = state.dim(0);
+  const std::vector<float> states = state.to_f32(), noises = noise.to_f32();
+
+  std::vector<policy::Observation> batch(B);
+  for (int64_t b = 0; b < B; ++b) {
+    policy::Observation& o = batch[b];
+    o.state.assign(states.begin() + b * state.dim(1), states.begin() + (b + 1) * state.dim(1));
+    o.instruction = instructions.at(b).get<std::string>();
+    o.noise.assign(noises.begin() + b * spec.chunk_size * spec.max_action_dim,
+                   noises.begin() + (b + 1) * spec.chunk_size * spec.max_action_dim);
+    for (const auto& cam : cameras) {
+      const std::string key = cam.get<std::string>();
+      o.images[key] = vision::load_image((dir / "inputs" / files.at(key).at(b).get<std::string>()).string());
+      // The decoded file must be exactly the pixels upstream saw.
+      const Tensor expected = oracle.get("input.image." + key);
+      const auto& img = o.images[key];
+      ASSERT_EQ((Shape{img.height, img.width, 3}), (Shape{expected.dim(1), expected.dim(2), 3})) << key;
+      EXPECT_EQ(std::memcmp(img.rgb.data(), expected.as<uint8_t>() + b * img.rgb.size(), img.rgb.size()), 0)
+          << key << " item " << b << " decodes differently from PIL";
+    }
+  }
+
+  std::map<std::string, Captured> captured;
+  policy->set_debug_hook([&](const std::string& name, const Tensor& t) { captured[name] = {t.shape, t.to_f32()}; });
+  const policy::Prediction pred = policy->predict(batch);
+
+  Captured actions{{B, spec.chunk_size, spec.action_dim}, {}};
+  for (const auto& item : pred.items) actions.values.insert(actions.values.end(), item.actions.begin(), item.actions.end());
+  captured["out.actions"] = actions;
+
+  std::printf("  %-32s %-16s %12s\n", ("[" + GetParam() + "]").c_str(), "shape", "max |diff|");
+  int compared = 0;
+  for (const std::string& name : oracle.names()) {
+    auto it = captured.find(name);
+    if (it == captured.end()) continue;
+    const Tensor ref = oracle.get(name);
+    ASSERT_EQ(it->second.shape, ref.shape) << name;
+    const double diff = max_abs_diff(it->second.values, ref.to_f32());
+    std::printf("  %-32s %-16s %12.3e\n", name.c_str(), shape_str(ref.shape).c_str(), diff);
+    EXPECT_LE(diff, tolerance(name)) << name;
+    ++compared;
+  }
+  EXPECT_GE(compared, 10) << "too few intermediates were compared";
+  ASSERT_TRUE(captured.count("out.actions"));
+}
+
+INSTANTIATE_TEST_SUITE_P(Fixtures, SmolVLAParity, ::testing::ValuesIn(cases()),
+                         [](const auto& info) { return info.param; });
+
+TEST(SmolVLAParityFixtures, Present) { EXPECT_GE(cases().size(), 4u) << "fixtures missing under tests/fixtures/smolvla"; }
+
+}  // namespace
