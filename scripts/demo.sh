@@ -6,6 +6,6 @@ cd "$(dirname "$0")/.."
 scripts/setup.sh release
 exec build/release/tether predict models/demo/smolvla-demo \
   --image front=models/demo/sample.png \
-  --state=0.0,-0.5,0.8,0.1,0.0,0.3 \
-  --instruction "pick up the red cube and place it in the bowl" \
+  --state 0,90,90,45,0,20 \
+  --instruction "pick up the red cube and put it in the blue bowl" \
   --seed 7 "$@"

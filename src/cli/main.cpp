@@ -12,6 +12,7 @@ int main(int argc, char** argv) {
   std::vector<std::pair<CLI::App*, std::function<int()>>> verbs;
   auto add = [&](std::function<int()> run) { verbs.push_back({app.get_subcommands().back(), std::move(run)}); };
   add(tether::cli::add_predict(app));
+  add(tether::cli::add_bench(app));
   try {
     app.parse(argc, argv);
   } catch (const CLI::ParseError& e) {

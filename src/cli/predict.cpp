@@ -3,11 +3,10 @@
 #include <cstdio>
 #include <filesystem>
 #include <iostream>
-#include <sstream>
 
 #include "cli/commands.h"
+#include "cli/observation_args.h"
 #include "core/json_util.h"
-#include "core/safetensors.h"
 #include "policy/policy.h"
 
 namespace tether::cli {
@@ -16,38 +15,9 @@ namespace {
 
 struct PredictArgs {
   std::string checkpoint;
-  std::vector<std::string> images;
-  std::string state;
-  std::string instruction;
-  std::string noise_file;
-  uint64_t seed = 0;
+  ObservationArgs observation;
   bool json = false;
 };
-
-std::vector<float> parse_floats(const std::string& text, const std::string& flag) {
-  std::vector<float> out;
-  std::stringstream ss(text);
-  std::string item;
-  while (std::getline(ss, item, ',')) {
-    try {
-      std::size_t used = 0;
-      out.push_back(std::stof(item, &used));
-      if (used != item.size()) throw std::invalid_argument(item);
-    } catch (const std::exception&) {
-      throw Error(ErrorCode::invalid_argument, flag + ": '" + item + "' is not a number");
-    }
-  }
-  return out;
-}
-
-// Accepts the checkpoint's camera key or its short form ("camera1" for "observation.images.camera1").
-std::string resolve_camera(const std::string& name, const std::vector<std::string>& cameras) {
-  for (const auto& c : cameras)
-    if (c == name || c == "observation.images." + name) return c;
-  std::string known;
-  for (const auto& c : cameras) known += (known.empty() ? "" : ", ") + c;
-  throw Error(ErrorCode::invalid_argument, "--image: the model has no camera '" + name + "' (it has: " + known + ")");
-}
 
 int run_predict(const PredictArgs& a) {
   const auto t0 = std::chrono::steady_clock::now();
@@ -56,22 +26,7 @@ int run_predict(const PredictArgs& a) {
   for (const auto& w : policy->load_warnings()) std::cerr << "warning: " << w << "\n";
   const auto& spec = policy->spec();
 
-  policy::Observation obs;
-  for (const auto& spec_str : a.images) {
-    const auto eq = spec_str.find('=');
-    if (eq == std::string::npos)
-      throw Error(ErrorCode::invalid_argument, "--image expects CAMERA=FILE, got '" + spec_str + "'");
-    const std::string camera = resolve_camera(spec_str.substr(0, eq), spec.cameras);
-    obs.images[camera] = vision::load_image(spec_str.substr(eq + 1));
-  }
-  obs.state = parse_floats(a.state, "--state");
-  if (int64_t(obs.state.size()) != spec.state_dim)
-    throw Error(ErrorCode::invalid_argument, "--state has " + std::to_string(obs.state.size()) +
-                                                 " values, the model expects " + std::to_string(spec.state_dim));
-  obs.instruction = a.instruction;
-  obs.seed = a.seed;
-  if (!a.noise_file.empty()) obs.noise = SafeTensorsFile::open(a.noise_file).get("noise").to_f32();
-
+  const policy::Observation obs = a.observation.build(*policy);
   const policy::Prediction p = policy->predict({obs});
   const policy::ActionChunk& chunk = p.items.at(0);
   for (const auto& w : chunk.warnings) std::cerr << "warning: " << w << "\n";
@@ -116,11 +71,7 @@ std::function<int()> add_predict(CLI::App& app) {
   auto args = std::make_shared<PredictArgs>();
   CLI::App* sub = app.add_subcommand("predict", "Run one observation through a checkpoint and print the action chunk");
   sub->add_option("checkpoint", args->checkpoint, "Checkpoint directory (LeRobot layout)")->required();
-  sub->add_option("--image", args->images, "CAMERA=FILE (PNG or JPEG), repeatable")->required();
-  sub->add_option("--state", args->state, "Robot state, comma-separated (robot units)")->required();
-  sub->add_option("--instruction", args->instruction, "Task instruction")->required();
-  sub->add_option("--seed", args->seed, "Noise seed (reproducible runs)");
-  sub->add_option("--noise", args->noise_file, "safetensors file with a 'noise' tensor [chunk, max_action_dim]");
+  args->observation.add_to(sub, /*required=*/true);
   sub->add_flag("--json", args->json, "Print JSON instead of a table");
   return [args] { return run_predict(*args); };
 }

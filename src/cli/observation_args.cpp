@@ -1,0 +1,86 @@
+#include "cli/observation_args.h"
+
+#include <sstream>
+
+#include "core/safetensors.h"
+
+namespace tether::cli {
+
+std::vector<float> parse_floats(const std::string& text, const std::string& flag) {
+  std::vector<float> out;
+  std::stringstream ss(text);
+  std::string item;
+  while (std::getline(ss, item, ',')) {
+    try {
+      std::size_t used = 0;
+      out.push_back(std::stof(item, &used));
+      if (used != item.size()) throw std::invalid_argument(item);
+    } catch (const std::exception&) {
+      throw Error(ErrorCode::invalid_argument, flag + ": '" + item + "' is not a number");
+    }
+  }
+  return out;
+}
+
+namespace {
+
+// Accepts the checkpoint's camera key or its short form ("camera1" for "observation.images.camera1").
+std::string resolve_camera(const std::string& name, const std::vector<std::string>& cameras) {
+  for (const auto& c : cameras)
+    if (c == name || c == "observation.images." + name) return c;
+  std::string known;
+  for (const auto& c : cameras) known += (known.empty() ? "" : ", ") + c;
+  throw Error(ErrorCode::invalid_argument, "--image: the model has no camera '" + name + "' (it has: " + known + ")");
+}
+
+}  // namespace
+
+void ObservationArgs::add_to(CLI::App* sub, bool required) {
+  auto* image = sub->add_option("--image", images, "CAMERA=FILE (PNG or JPEG), repeatable; CAMERA as the checkpoint names it, or its short form");
+  auto* st = sub->add_option("--state", state, "Robot state, comma-separated, robot units (use --state=-1,2 for a leading minus)");
+  auto* instr = sub->add_option("--instruction", instruction, "Task instruction");
+  if (required) {
+    image->required();
+    st->required();
+    instr->required();
+  }
+  sub->add_option("--seed", seed, "Noise seed (reproducible runs)");
+  sub->add_option("--noise", noise_file, "safetensors file with a 'noise' tensor [chunk, max_action_dim]");
+}
+
+policy::Observation ObservationArgs::build(const policy::Policy& policy) const {
+  const auto& spec = policy.spec();
+  policy::Observation obs;
+  for (const auto& spec_str : images) {
+    const auto eq = spec_str.find('=');
+    if (eq == std::string::npos)
+      throw Error(ErrorCode::invalid_argument, "--image expects CAMERA=FILE, got '" + spec_str + "'");
+    obs.images[resolve_camera(spec_str.substr(0, eq), spec.cameras)] = vision::load_image(spec_str.substr(eq + 1));
+  }
+  if (images.empty()) {
+    for (std::size_t c = 0; c < spec.cameras.size(); ++c) {
+      if (spec.cameras[c].find("empty_camera_") != std::string::npos) continue;
+      vision::Image img;
+      img.height = int(spec.image_height);
+      img.width = int(spec.image_width);
+      img.rgb.assign(std::size_t(img.height) * img.width * 3, 128);
+      obs.images[spec.cameras[c]] = std::move(img);
+    }
+  }
+  obs.state = state.empty() ? std::vector<float>(std::size_t(spec.state_dim), 0.f) : parse_floats(state, "--state");
+  if (int64_t(obs.state.size()) != spec.state_dim)
+    throw Error(ErrorCode::invalid_argument, "--state has " + std::to_string(obs.state.size()) +
+                                                 " values, the model expects " + std::to_string(spec.state_dim));
+  obs.instruction = instruction;
+  obs.seed = seed;
+  if (!noise_file.empty()) {
+    obs.noise = SafeTensorsFile::open(noise_file).get("noise").to_f32();
+    if (int64_t(obs.noise.size()) != spec.chunk_size * spec.max_action_dim)
+      throw Error(ErrorCode::invalid_argument, noise_file + ": 'noise' has " + std::to_string(obs.noise.size()) +
+                                                   " values, expected chunk_size x max_action_dim = " +
+                                                   std::to_string(spec.chunk_size * spec.max_action_dim));
+  }
+  return obs;
+}
+
+}  // namespace tether::cli

@@ -1,0 +1,27 @@
+// Flags shared by the verbs that build an observation from files (predict, bench).
+#pragma once
+
+#include <CLI/CLI.hpp>
+#include <string>
+#include <vector>
+
+#include "policy/policy.h"
+
+namespace tether::cli {
+
+struct ObservationArgs {
+  std::vector<std::string> images;  // CAMERA=FILE
+  std::string state;                // comma-separated
+  std::string instruction;
+  std::string noise_file;
+  uint64_t seed = 0;
+
+  // `required`: predict needs real inputs; bench falls back to synthetic ones.
+  void add_to(CLI::App* sub, bool required);
+  // Builds the observation; with no images/state given, uses a mid-grey frame per camera and a zero state.
+  policy::Observation build(const policy::Policy& policy) const;
+};
+
+std::vector<float> parse_floats(const std::string& text, const std::string& flag);
+
+}  // namespace tether::cli
