@@ -13,7 +13,9 @@
 namespace tether::cpu {
 namespace {
 
-constexpr int64_t kQueryBlock = 32;
+// Each BLAS call packs the whole K (or V) of its head, so blocks must be tall enough to amortise that
+// (32-row blocks measured ~20% slower than 128 on the 241-token prefix); 128 x 1024 scores fit in L2.
+constexpr int64_t kQueryBlock = 128;
 
 void require(bool ok, const std::string& what) {
   if (!ok) throw Error(ErrorCode::invalid_argument, "attention: " + what);
@@ -40,7 +42,6 @@ void attention(const float* q, int64_t q_stride, const float* k, const float* v,
   // Tasks are (item, head, block of queries). The block size depends on nothing but len_q: BLAS results
   // depend on where a row falls in the product (edge kernels sum in another order), so a block layout
   // that varied with the batch size or the thread count would make an item's output depend on them.
-  // Blocks of at most 32 rows also give 2 threads an even split for the expert's 50 queries x 15 heads.
   const int64_t block = std::min<int64_t>(len_q, kQueryBlock);
   const int64_t blocks = (len_q + block - 1) / block;
   const int64_t tasks = batch * heads * blocks;
