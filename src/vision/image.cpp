@@ -1,4 +1,5 @@
-// Format detection by magic bytes and file loading; the decoders live in png_decode.cpp and jpeg_decode.cpp.
+// Format detection by magic bytes and file loading; the decoders live in png_decode.cpp and
+// jpeg_decode.cpp.
 #include "vision/image.h"
 
 #include <cerrno>
@@ -20,10 +21,12 @@ bool starts_with(const uint8_t* bytes, std::size_t size, const uint8_t* magic, s
 }  // namespace
 
 Image decode_image(const uint8_t* bytes, std::size_t size, const std::string& label) {
-  if (bytes == nullptr || size == 0) throw Error(ErrorCode::format, label + ": image data is empty");
+  if (bytes == nullptr || size == 0)
+    throw Error(ErrorCode::format, label + ": image data is empty");
   if (starts_with(bytes, size, kPngMagic, sizeof(kPngMagic))) return decode_png(bytes, size, label);
   constexpr uint8_t kJpegMagic[3] = {0xff, 0xd8, 0xff};
-  if (starts_with(bytes, size, kJpegMagic, sizeof(kJpegMagic))) return decode_jpeg(bytes, size, label);
+  if (starts_with(bytes, size, kJpegMagic, sizeof(kJpegMagic)))
+    return decode_jpeg(bytes, size, label);
   static const char* kHex = "0123456789abcdef";
   std::string head;
   for (std::size_t i = 0; i < std::min<std::size_t>(size, 8); ++i) {

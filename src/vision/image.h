@@ -18,8 +18,8 @@ struct Image {
 inline constexpr int64_t kMaxImagePixels = 100'000'000;
 
 // Decodes PNG or JPEG, chosen by the magic bytes. `label` names the source (file, request field) in
-// errors. EXIF orientation is deliberately NOT applied: PIL's plain open/convert ignores it, and the
-// upstream policy saw the pixels in stored order.
+// errors. EXIF orientation is deliberately NOT applied: PIL's plain open/convert ignores it, and
+// the upstream policy saw the pixels in stored order.
 Image decode_image(const uint8_t* bytes, std::size_t size, const std::string& label);
 Image decode_png(const uint8_t* bytes, std::size_t size, const std::string& label);
 Image decode_jpeg(const uint8_t* bytes, std::size_t size, const std::string& label);

@@ -1,5 +1,6 @@
-// JPEG decoding with TurboJPEG, set up to produce the same pixels as PIL (which wraps libjpeg-turbo):
-// the accurate integer IDCT (JDCT_ISLOW) and "fancy" (triangle-filter) chroma upsampling.
+// JPEG decoding with TurboJPEG, set up to produce the same pixels as PIL (which wraps
+// libjpeg-turbo): the accurate integer IDCT (JDCT_ISLOW) and "fancy" (triangle-filter) chroma
+// upsampling.
 #include <turbojpeg.h>
 
 #include <cstring>
@@ -29,9 +30,9 @@ Image decode_jpeg(const uint8_t* bytes, std::size_t size, const std::string& lab
     throw Error(ErrorCode::format, label + ": invalid JPEG header: " + tjGetErrorStr2(tj));
   if (width <= 0 || height <= 0) throw Error(ErrorCode::format, label + ": JPEG has zero size");
   if (int64_t(width) * height > kMaxImagePixels)
-    throw Error(ErrorCode::invalid_argument,
-                label + ": JPEG is " + std::to_string(width) + "x" + std::to_string(height) +
-                    ", over the limit of " + std::to_string(kMaxImagePixels) + " pixels");
+    throw Error(ErrorCode::invalid_argument, label + ": JPEG is " + std::to_string(width) + "x" +
+                                                 std::to_string(height) + ", over the limit of " +
+                                                 std::to_string(kMaxImagePixels) + " pixels");
   // PIL would return these in mode CMYK and apply its own naive CMYK->RGB formula; robot cameras
   // do not produce them, so they are refused rather than approximated.
   if (colorspace == TJCS_CMYK || colorspace == TJCS_YCCK)

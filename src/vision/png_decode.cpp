@@ -57,9 +57,10 @@ Image decode_png(const uint8_t* bytes, std::size_t size, const std::string& labe
   if (rc) fail(label, "bad header", rc);
   const int64_t pixels = int64_t(ihdr.width) * int64_t(ihdr.height);
   if (pixels > kMaxImagePixels)
-    throw Error(ErrorCode::invalid_argument,
-                label + ": PNG is " + std::to_string(ihdr.width) + "x" + std::to_string(ihdr.height) +
-                    ", over the limit of " + std::to_string(kMaxImagePixels) + " pixels");
+    throw Error(ErrorCode::invalid_argument, label + ": PNG is " + std::to_string(ihdr.width) +
+                                                 "x" + std::to_string(ihdr.height) +
+                                                 ", over the limit of " +
+                                                 std::to_string(kMaxImagePixels) + " pixels");
 
   std::size_t raw_size = 0;
   rc = spng_decoded_image_size(c, SPNG_FMT_PNG, &raw_size);
@@ -126,8 +127,9 @@ Image decode_png(const uint8_t* bytes, std::size_t size, const std::string& labe
         }
         break;
       default:
-        throw Error(ErrorCode::unsupported,
-                    label + ": PNG colour type " + std::to_string(ihdr.color_type) + " is not supported");
+        throw Error(
+            ErrorCode::unsupported,
+            label + ": PNG colour type " + std::to_string(ihdr.color_type) + " is not supported");
     }
   }
   return img;

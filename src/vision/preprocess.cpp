@@ -4,7 +4,8 @@
 //   scale = float(in) / float(out)                     (float32 division)
 //   src   = fma(scale, float(o) + 0.5f, -0.5f)         (x86 builds contract this into one FMA)
 //   src   = max(src, 0);  i0 = min(int(src), in - 1);  i1 = i0 + (i0 < in - 1)
-//   l1    = clamp(src - i0, 0, 1);  l0 = 1 - l1;       and in == out gives i0 = i1 = o, l0 = 1, l1 = 0.
+//   l1    = clamp(src - i0, 0, 1);  l0 = 1 - l1;       and in == out gives i0 = i1 = o, l0 = 1, l1
+//   = 0.
 // Then one of two kernels (see TorchThreads in preprocess.h), with these exact fusions:
 //   separable: t0 = fma(x00, w0, x01 * w1); t1 = fma(x10, w0, x11 * w1); y = fma(t0, h0, t1 * h1)
 //   four-tap:  y = fma(x11, h1*w1, fma(x10, h1*w0, fma(x00, h0*w0, x01 * (h0*w1))))
@@ -15,6 +16,7 @@
 #include "vision/preprocess.h"
 
 #include <algorithm>
+#include <atomic>
 #include <cmath>
 #include <cstring>
 #include <string>
@@ -153,31 +155,37 @@ template <class Src>
   }
 }
 
-// Two builds of the kernels: one for CPUs with FMA, where std::fma is one instruction, and a portable
-// one where it is a (correctly rounded, slower) libm call. Both give identical results.
-[[gnu::target("avx2,fma"), gnu::flatten]] void run_f32_fma(const PlanarF32& s, const Job& j) { run(s, j); }
-[[gnu::target("avx2,fma"), gnu::flatten]] void run_u8_fma(const InterleavedU8& s, const Job& j) { run(s, j); }
+// Two builds of the kernels: one for CPUs with FMA, where std::fma is one instruction, and a
+// portable one where it is a (correctly rounded, slower) libm call. Both give identical results.
+[[gnu::target("avx2,fma"), gnu::flatten]] void run_f32_fma(const PlanarF32& s, const Job& j) {
+  run(s, j);
+}
+[[gnu::target("avx2,fma"), gnu::flatten]] void run_u8_fma(const InterleavedU8& s, const Job& j) {
+  run(s, j);
+}
 void run_f32_portable(const PlanarF32& s, const Job& j) { run(s, j); }
 void run_u8_portable(const InterleavedU8& s, const Job& j) { run(s, j); }
 
-bool cpu_has_fma() {
+std::atomic<bool> g_force_portable{false};
+
+bool use_fma_kernels() {
   static const bool has = __builtin_cpu_supports("avx2") && __builtin_cpu_supports("fma");
-  return has;
+  return has && !g_force_portable.load(std::memory_order_relaxed);
 }
 
 template <class Src>
 void run_dispatch(const Src& src, const Job& j) {
   if constexpr (std::is_same_v<Src, PlanarF32>) {
-    cpu_has_fma() ? run_f32_fma(src, j) : run_f32_portable(src, j);
+    use_fma_kernels() ? run_f32_fma(src, j) : run_f32_portable(src, j);
   } else {
-    cpu_has_fma() ? run_u8_fma(src, j) : run_u8_portable(src, j);
+    use_fma_kernels() ? run_u8_fma(src, j) : run_u8_portable(src, j);
   }
 }
 
 void check_size(const char* what, int h, int w) {
   if (h <= 0 || w <= 0)
-    throw Error(ErrorCode::invalid_argument, std::string(what) + " size " + std::to_string(h) + "x" +
-                                                 std::to_string(w) + " is not positive");
+    throw Error(ErrorCode::invalid_argument, std::string(what) + " size " + std::to_string(h) +
+                                                 "x" + std::to_string(w) + " is not positive");
 }
 
 void check_ptr(const void* p, const char* what) {
@@ -203,13 +211,18 @@ void check_image(const Image& img) {
 
 }  // namespace
 
+namespace detail {
+void force_portable_kernels(bool on) { g_force_portable.store(on, std::memory_order_relaxed); }
+}  // namespace detail
+
 BilinearKernel torch_bilinear_kernel(int channels, int in_h, int in_w, int out_h, int out_w,
                                      TorchThreads threads) {
   // torch takes the four-tap (channels-last) kernel when the input is channels-last contiguous with
   // more than 3 channels (a contiguous NCHW tensor only is when it has one pixel), when the output
   // is small, or for 3-channel images on one thread.
   const bool channels_last_input = channels > 3 && in_h == 1 && in_w == 1;
-  if (channels_last_input || out_h + out_w <= 128 || (threads == TorchThreads::one && channels == 3))
+  if (channels_last_input || out_h + out_w <= 128 ||
+      (threads == TorchThreads::one && channels == 3))
     return BilinearKernel::four_tap;
   return BilinearKernel::separable;
 }
@@ -227,13 +240,17 @@ void resize_bilinear(const float* in, int channels, int in_h, int in_w, int out_
                      float* out, TorchThreads threads) {
   check_ptr(in, "input");
   check_ptr(out, "output");
-  if (channels <= 0) throw Error(ErrorCode::invalid_argument, "resize_bilinear: channels must be positive");
+  if (channels <= 0)
+    throw Error(ErrorCode::invalid_argument, "resize_bilinear: channels must be positive");
   check_size("resize_bilinear input", in_h, in_w);
   check_size("resize_bilinear output", out_h, out_w);
   t_rows.build(in_h, out_h);
   t_cols.build(in_w, out_w);
-  const Job job{channels, out_h, out_w, out, out_h, out_w, 0, 0, false,
-                torch_bilinear_kernel(channels, in_h, in_w, out_h, out_w, threads)};
+  const Job job{channels, out_h,
+                out_w,    out,
+                out_h,    out_w,
+                0,        0,
+                false,    torch_bilinear_kernel(channels, in_h, in_w, out_h, out_w, threads)};
   run_dispatch(PlanarF32{in, int64_t(in_h) * in_w, in_w}, job);
 }
 
@@ -246,8 +263,9 @@ ResizedSize resize_with_pad_size(int in_h, int in_w, int out_h, int out_w) {
   if (r.height <= 0 || r.width <= 0)
     throw Error(ErrorCode::invalid_argument,
                 "image " + std::to_string(in_h) + "x" + std::to_string(in_w) + " resized into " +
-                    std::to_string(out_h) + "x" + std::to_string(out_w) + " keeping its aspect ratio would be " +
-                    std::to_string(r.height) + "x" + std::to_string(r.width) + " (a side of zero pixels)");
+                    std::to_string(out_h) + "x" + std::to_string(out_w) +
+                    " keeping its aspect ratio would be " + std::to_string(r.height) + "x" +
+                    std::to_string(r.width) + " (a side of zero pixels)");
   return r;
 }
 
@@ -255,18 +273,23 @@ void resize_with_pad(const float* in, int channels, int in_h, int in_w, int out_
                      float pad_value, float* out, TorchThreads threads) {
   check_ptr(in, "input");
   check_ptr(out, "output");
-  if (channels <= 0) throw Error(ErrorCode::invalid_argument, "resize_with_pad: channels must be positive");
+  if (channels <= 0)
+    throw Error(ErrorCode::invalid_argument, "resize_with_pad: channels must be positive");
   if (in_h == out_h && in_w == out_w) {
     check_size("resize_with_pad input", in_h, in_w);
-    std::memcpy(out, in, sizeof(float) * std::size_t(channels) * std::size_t(in_h) * std::size_t(in_w));
+    std::memcpy(out, in,
+                sizeof(float) * std::size_t(channels) * std::size_t(in_h) * std::size_t(in_w));
     return;
   }
   const ResizedSize r = resize_with_pad_size(in_h, in_w, out_h, out_w);
   const int top = std::max(0, out_h - r.height), left = std::max(0, out_w - r.width);
   t_rows.build(in_h, r.height);
   t_cols.build(in_w, r.width);
-  const Job job{channels, r.height, r.width, out, out_h, out_w, top, left, false,
-                torch_bilinear_kernel(channels, in_h, in_w, r.height, r.width, threads)};
+  const Job job{channels, r.height,
+                r.width,  out,
+                out_h,    out_w,
+                top,      left,
+                false,    torch_bilinear_kernel(channels, in_h, in_w, r.height, r.width, threads)};
   run_dispatch(PlanarF32{in, int64_t(in_h) * in_w, in_w}, job);
   fill_padding(out, channels, out_h, out_w, top, left, pad_value);
 }
@@ -287,8 +310,11 @@ void preprocess_smolvla(const Image& img, int out_h, int out_w, float* out, Torc
   const int top = std::max(0, out_h - r.height), left = std::max(0, out_w - r.width);
   t_rows.build(in_h, r.height);
   t_cols.build(in_w, r.width);
-  const Job job{3, r.height, r.width, out, out_h, out_w, top, left, true,
-                torch_bilinear_kernel(3, in_h, in_w, r.height, r.width, threads)};
+  const Job job{3,       r.height,
+                r.width, out,
+                out_h,   out_w,
+                top,     left,
+                true,    torch_bilinear_kernel(3, in_h, in_w, r.height, r.width, threads)};
   run_dispatch(InterleavedU8{img.rgb.data(), in_w}, job);
   // Padding is 0 before the affine map, hence exactly -1 after it.
   fill_padding(out, 3, out_h, out_w, top, left, -1.0f);

@@ -1,6 +1,7 @@
-// Image preprocessing bit-exact with lerobot + torch on CPU: uint8 -> [0,1] floats, torch's bilinear
-// resize (F.interpolate, align_corners=False, antialias=False, float32), lerobot's resize-with-pad.
-// Everything writes into caller buffers and allocates nothing once warmed (per-thread index tables).
+// Image preprocessing bit-exact with lerobot + torch on CPU: uint8 -> [0,1] floats, torch's
+// bilinear resize (F.interpolate, align_corners=False, antialias=False, float32), lerobot's
+// resize-with-pad. Everything writes into caller buffers and allocates nothing once warmed
+// (per-thread index tables).
 #pragma once
 
 #include "vision/image.h"
@@ -43,5 +44,12 @@ void resize_with_pad(const float* in, int channels, int in_h, int in_w, int out_
 // Note the SmolVLA config stores resize_imgs_with_padding as (width, height).
 void preprocess_smolvla(const Image& img, int out_h, int out_w, float* out,
                         TorchThreads threads = TorchThreads::many);
+
+namespace detail {
+// Tests only: run the portable kernel build (libm fma) even on a CPU with FMA instructions, to
+// check that both builds give identical bits. Not meant to be toggled while other threads
+// preprocess.
+void force_portable_kernels(bool on);
+}  // namespace detail
 
 }  // namespace tether::vision

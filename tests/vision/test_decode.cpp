@@ -38,8 +38,8 @@ int decode_diff(const std::string& name, bool print = true) {
     differing += d != 0;
   }
   if (print)
-    std::printf("  %-28s %4dx%-4d max|diff| %d (%lld of %zu samples differ)\n", name.c_str(), img.height,
-                img.width, max_diff, (long long)differing, img.rgb.size());
+    std::printf("  %-28s %4dx%-4d max|diff| %d (%lld of %zu samples differ)\n", name.c_str(),
+                img.height, img.width, max_diff, (long long)differing, img.rgb.size());
   return max_diff;
 }
 
@@ -68,7 +68,8 @@ ErrorCode decode_error(const std::string& name, std::string* message) {
 
 TEST(VisionDecode, PngMatchesPilExactly) {
   const auto names = fixture_names(".png");
-  ASSERT_GE(names.size(), 20u);  // every colour type, depth and interlacing variant the generator writes
+  ASSERT_GE(names.size(),
+            20u);  // every colour type, depth and interlacing variant the generator writes
   for (const auto& name : names) EXPECT_EQ(decode_diff(name), 0) << name;
 }
 
@@ -94,8 +95,8 @@ TEST(VisionDecode, DecodeFromMemoryMatchesFile) {
 }
 
 TEST(VisionDecode, CorruptAndTruncatedFilesAreFormatErrors) {
-  for (const char* name : {"truncated.png", "truncated.jpg", "truncated_progressive.jpg", "header_only.jpg",
-                           "signature_only.png", "bad_crc.png", "empty.png"}) {
+  for (const char* name : {"truncated.png", "truncated.jpg", "truncated_progressive.jpg",
+                           "header_only.jpg", "signature_only.png", "bad_crc.png", "empty.png"}) {
     std::string msg;
     EXPECT_EQ(decode_error(name, &msg), ErrorCode::format) << name << ": " << msg;
     EXPECT_NE(msg.find(name), std::string::npos) << "message must name the file: " << msg;
@@ -139,6 +140,51 @@ TEST(VisionDecode, EveryTruncationOfAPngFails) {
   // No prefix of a PNG may decode to a silently partial image.
   const auto bytes = read_bytes(fixture("images/rgb8_interlaced.png"));
   for (std::size_t n = 0; n < bytes.size(); n += 97) {
-    EXPECT_THROW(decode_image(bytes.data(), n, "prefix"), Error) << n << " of " << bytes.size() << " bytes";
+    EXPECT_THROW(decode_image(bytes.data(), n, "prefix"), Error)
+        << n << " of " << bytes.size() << " bytes";
   }
+}
+
+TEST(VisionDecode, RandomCorruptionOnlyEverThrowsTetherErrors) {
+  // Deterministic byte flips, insertions and cuts: each input decodes or throws tether::Error,
+  // never crashes or leaks another exception type (run under ASan/UBSan in the sanitizer build).
+  uint64_t state = 0x9e3779b97f4a7c15ull;
+  auto next = [&state] {
+    state ^= state << 13;
+    state ^= state >> 7;
+    state ^= state << 17;
+    return state;
+  };
+  int decoded = 0, refused = 0;
+  for (const char* name : {"rgb8_interlaced.png", "palette4.png", "gray16.png", "q75_420.jpg",
+                           "q75_420_progressive.jpg", "gray.jpg"}) {
+    const auto original = read_bytes(fixture(std::string("images/") + name));
+    for (int trial = 0; trial < 300; ++trial) {
+      std::vector<uint8_t> bytes = original;
+      const int edits = 1 + int(next() % 4);
+      for (int e = 0; e < edits; ++e) {
+        const std::size_t pos = next() % bytes.size();
+        switch (next() % 3) {
+          case 0:
+            bytes[pos] ^= uint8_t(1 + next() % 255);
+            break;
+          case 1:
+            bytes.insert(bytes.begin() + long(pos), uint8_t(next()));
+            break;
+          default:
+            bytes.resize(std::max<std::size_t>(pos, 1));
+            break;
+        }
+      }
+      try {
+        const Image img = decode_image(bytes.data(), bytes.size(), name);
+        EXPECT_EQ(img.rgb.size(), std::size_t(img.height) * img.width * 3);
+        ++decoded;
+      } catch (const Error&) {
+        ++refused;
+      }
+    }
+  }
+  std::printf("  corrupted inputs: %d decoded, %d refused\n", decoded, refused);
+  EXPECT_GT(refused, 0);
 }

@@ -30,7 +30,8 @@ Image image_from_tensor(const Tensor& t) {
 }
 
 Image case_image(const SafeTensorsFile& f, const std::string& name, const std::string& source) {
-  if (source.rfind("noise:", 0) == 0) return image_from_tensor(f.get("preprocess/" + name + "/image"));
+  if (source.rfind("noise:", 0) == 0)
+    return image_from_tensor(f.get("preprocess/" + name + "/image"));
   return load_image(fixture("images/" + source));  // the full path: our decoder feeds the resize
 }
 
@@ -44,17 +45,33 @@ TEST(VisionPreprocess, SmolvlaMatchesLerobotBitExactly) {
     const std::string name = c["name"], source = c["source"];
     const int out_h = c["out"][0], out_w = c["out"][1];
     const Image img = case_image(f, name, source);
-    for (const auto& [mode, threads] : {std::pair{"many", TorchThreads::many}, std::pair{"one", TorchThreads::one}}) {
+    for (const auto& [mode, threads] :
+         {std::pair{"many", TorchThreads::many}, std::pair{"one", TorchThreads::one}}) {
       const std::string key = "preprocess/" + name + "/threads_" + mode;
       const Tensor want = f.get(f.contains(key) ? key : "preprocess/" + name + "/threads_many");
       ASSERT_EQ(want.shape, (Shape{3, out_h, out_w})) << key;
       std::vector<float> got(want.numel(), 42.0f);  // poison: every element must be written
       preprocess_smolvla(img, out_h, out_w, got.data(), threads);
       const Diff d = compare(got.data(), want.as<float>(), want.numel());
-      std::printf("  %-28s %4dx%-4d -> %dx%d threads=%-4s max|diff| %.3g (%lld differ)\n", name.c_str(), img.height,
-                  img.width, out_h, out_w, mode, d.max_abs, (long long)d.mismatched);
+      std::printf("  %-28s %4dx%-4d -> %dx%d threads=%-4s max|diff| %.3g (%lld differ)\n",
+                  name.c_str(), img.height, img.width, out_h, out_w, mode, d.max_abs,
+                  (long long)d.mismatched);
       EXPECT_EQ(d.mismatched, 0) << key << " max|diff| " << d.max_abs;
     }
+  }
+}
+
+TEST(VisionPreprocess, PortableKernelsGiveTheSameBits) {
+  // CPUs without FMA run the portable build, where each fused multiply-add is a libm call.
+  const Image img = load_image(fixture("images/camera_240x320.jpg"));
+  for (const TorchThreads threads : {TorchThreads::many, TorchThreads::one}) {
+    std::vector<float> fast(3 * 200 * 200), portable(3 * 200 * 200);
+    preprocess_smolvla(img, 200, 200, fast.data(), threads);
+    detail::force_portable_kernels(true);
+    preprocess_smolvla(img, 200, 200, portable.data(), threads);
+    detail::force_portable_kernels(false);
+    const Diff d = compare(portable.data(), fast.data(), int64_t(fast.size()));
+    EXPECT_EQ(d.mismatched, 0) << "max|diff| " << d.max_abs;
   }
 }
 
@@ -123,10 +140,12 @@ TEST(VisionPreprocess, Timing480x640) {
     for (int i = 0; i < 30; ++i) {
       const auto t0 = std::chrono::steady_clock::now();
       preprocess_smolvla(img, side, side, out.data());
-      ms.push_back(std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - t0).count());
+      ms.push_back(
+          std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - t0).count());
     }
     std::sort(ms.begin(), ms.end());
-    std::printf("  preprocess_smolvla 480x640 -> %dx%d: median %.3f ms, min %.3f ms\n", side, side, ms[15], ms[0]);
+    std::printf("  preprocess_smolvla 480x640 -> %dx%d: median %.3f ms, min %.3f ms\n", side, side,
+                ms[15], ms[0]);
     // Generous bound for a shared CI machine; the measured number is what gets reported.
     EXPECT_LT(ms[15], 50.0);
   }

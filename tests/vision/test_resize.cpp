@@ -28,12 +28,15 @@ TEST(VisionResize, BilinearMatchesTorchBitExactly) {
   int differing_cases = 0;
   for (const auto& c : cases) {
     const std::string name = c["name"];
-    const int ch = c["channels"], in_h = c["in"][0], in_w = c["in"][1], out_h = c["out"][0], out_w = c["out"][1];
+    const int ch = c["channels"], in_h = c["in"][0], in_w = c["in"][1], out_h = c["out"][0],
+              out_w = c["out"][1];
     const Tensor input = f.get("resize/" + name + "/input");
     ASSERT_EQ(input.shape, (Shape{ch, in_h, in_w})) << name;
     differing_cases += bool(c["threads_differ"]);
-    for (const auto& [mode, threads] : {std::pair{"many", TorchThreads::many}, std::pair{"one", TorchThreads::one}}) {
-      // Only stored where torch's single-thread kernel rounds differently from the multi-thread one.
+    for (const auto& [mode, threads] :
+         {std::pair{"many", TorchThreads::many}, std::pair{"one", TorchThreads::one}}) {
+      // Only stored where torch's single-thread kernel rounds differently from the multi-thread
+      // one.
       const std::string key = "resize/" + name + "/threads_" + mode;
       const Tensor want = f.get(f.contains(key) ? key : "resize/" + name + "/threads_many");
       ASSERT_EQ(want.shape, (Shape{ch, out_h, out_w})) << key;
@@ -41,10 +44,11 @@ TEST(VisionResize, BilinearMatchesTorchBitExactly) {
       resize_bilinear(input.as<float>(), ch, in_h, in_w, out_h, out_w, got.data(), threads);
       const Diff d = compare(got.data(), want.as<float>(), want.numel());
       const char* kernel =
-          torch_bilinear_kernel(ch, in_h, in_w, out_h, out_w, threads) == BilinearKernel::separable ? "separable"
-                                                                                                    : "four-tap";
-      std::printf("  %-30s threads=%-4s %-9s max|diff| %.3g (%lld differ)\n", name.c_str(), mode, kernel,
-                  d.max_abs, (long long)d.mismatched);
+          torch_bilinear_kernel(ch, in_h, in_w, out_h, out_w, threads) == BilinearKernel::separable
+              ? "separable"
+              : "four-tap";
+      std::printf("  %-30s threads=%-4s %-9s max|diff| %.3g (%lld differ)\n", name.c_str(), mode,
+                  kernel, d.max_abs, (long long)d.mismatched);
       EXPECT_EQ(d.mismatched, 0) << key << " max|diff| " << d.max_abs;
     }
   }
@@ -53,11 +57,16 @@ TEST(VisionResize, BilinearMatchesTorchBitExactly) {
 }
 
 TEST(VisionResize, KernelChoiceFollowsTorch) {
-  EXPECT_EQ(torch_bilinear_kernel(3, 480, 640, 384, 512, TorchThreads::many), BilinearKernel::separable);
-  EXPECT_EQ(torch_bilinear_kernel(3, 480, 640, 384, 512, TorchThreads::one), BilinearKernel::four_tap);
-  EXPECT_EQ(torch_bilinear_kernel(1, 480, 640, 384, 512, TorchThreads::one), BilinearKernel::separable);
-  EXPECT_EQ(torch_bilinear_kernel(3, 96, 128, 48, 64, TorchThreads::many), BilinearKernel::four_tap);  // 48+64 <= 128
-  EXPECT_EQ(torch_bilinear_kernel(3, 96, 128, 64, 65, TorchThreads::many), BilinearKernel::separable);
+  EXPECT_EQ(torch_bilinear_kernel(3, 480, 640, 384, 512, TorchThreads::many),
+            BilinearKernel::separable);
+  EXPECT_EQ(torch_bilinear_kernel(3, 480, 640, 384, 512, TorchThreads::one),
+            BilinearKernel::four_tap);
+  EXPECT_EQ(torch_bilinear_kernel(1, 480, 640, 384, 512, TorchThreads::one),
+            BilinearKernel::separable);
+  EXPECT_EQ(torch_bilinear_kernel(3, 96, 128, 48, 64, TorchThreads::many),
+            BilinearKernel::four_tap);  // 48+64 <= 128
+  EXPECT_EQ(torch_bilinear_kernel(3, 96, 128, 64, 65, TorchThreads::many),
+            BilinearKernel::separable);
   EXPECT_EQ(torch_bilinear_kernel(8, 1, 1, 100, 100, TorchThreads::many), BilinearKernel::four_tap);
 }
 

@@ -13,11 +13,14 @@
 
 namespace tether::vision::test {
 
-inline std::string fixture(const std::string& rel) { return std::string(TETHER_FIXTURES_DIR) + "/vision/" + rel; }
+inline std::string fixture(const std::string& rel) {
+  return std::string(TETHER_FIXTURES_DIR) + "/vision/" + rel;
+}
 
 inline std::vector<uint8_t> read_bytes(const std::string& path) {
   std::ifstream f(path, std::ios::binary);
-  return std::vector<uint8_t>((std::istreambuf_iterator<char>(f)), std::istreambuf_iterator<char>());
+  return std::vector<uint8_t>((std::istreambuf_iterator<char>(f)),
+                              std::istreambuf_iterator<char>());
 }
 
 struct Diff {
