@@ -59,7 +59,8 @@ build_python() {
   local mirror; mirror="$(debian_mirror)"
   local src_list=/etc/apt/sources.list.d/tether-trixie-src.sources
   if [[ ! -f "$src_list" ]]; then
-    # source entries only: no trixie binary package can be installed through this file
+    # source entries only: no trixie binary package can be installed through this file; it is
+    # removed again once the source is downloaded
     cat >"$src_list" <<EOF
 Types: deb-src
 URIs: $mirror
@@ -74,8 +75,9 @@ EOF
     libsqlite3-dev libreadline-dev uuid-dev libgdbm-dev libgdbm-compat-dev libncursesw5-dev \
     libexpat1-dev >/dev/null
   rm -rf "$work" && mkdir -p "$work"
-  (cd "$work" && apt-get source --download-only -qq python3.13 && dpkg-source -x --skip-debianization \
-      --no-check "$(ls -1 python3.13_*.dsc | head -n1)" src >/dev/null)
+  (cd "$work" && apt-get source --download-only -qq python3.13)
+  rm -f "$src_list"
+  (cd "$work" && dpkg-source -x --skip-debianization --no-check "$(ls -1 python3.13_*.dsc | head -n1)" src >/dev/null)
   local tarball_dir="$work/src"
   [[ -x "$tarball_dir/configure" ]] || { log "python3.13 source did not unpack to $tarball_dir"; return 1; }
   (cd "$tarball_dir" && ./configure --prefix="$prefix" --with-ensurepip=install --with-system-expat \
