@@ -37,8 +37,9 @@ inline Diff compare(const float* got, const float* want, int64_t n) {
   return d;
 }
 
+// The generator stores all its metadata as one JSON object under the key "fixture".
 inline Json metadata_json(const SafeTensorsFile& f, const std::string& key) {
-  return Json::parse(f.metadata().at(key));
+  return Json::parse(f.metadata().at("fixture")).at(key);
 }
 
 }  // namespace tether::vision::test

@@ -13,6 +13,7 @@ import argparse
 import io
 import json
 import os
+import re
 import struct
 import zlib
 from importlib.metadata import version
@@ -232,8 +233,15 @@ def pil_error(data):
         with Image.open(io.BytesIO(data)) as im:
             im.convert("RGB")
     except Exception as e:  # noqa: BLE001 - any refusal counts
-        return f"{type(e).__name__}: {e}"
+        # drop object addresses so regeneration stays byte-identical
+        return re.sub(r" at 0x[0-9a-f]+", "", f"{type(e).__name__}: {e}")
     return None
+
+
+def save(tensors, out, name, fixture_meta):
+    """All metadata goes under one key, "fixture", as JSON with sorted keys: the safetensors writer
+    orders several metadata keys differently from run to run, and regeneration must be byte-identical."""
+    save_file(tensors, os.path.join(out, name), metadata={"fixture": json.dumps(fixture_meta, sort_keys=True)})
 
 
 def with_threads(n, fn):
@@ -338,8 +346,7 @@ def main():
         else:
             assert err is not None, f"PIL accepted {name}; it is not a refusal case"
             bad_meta[name] = err
-    save_file(decoded, os.path.join(out, "decode.safetensors"),
-              metadata={"versions": json.dumps(versions), "bad_files": json.dumps(bad_meta)})
+    save(decoded, out, "decode.safetensors", {"versions": versions, "bad_files": bad_meta})
 
     # Bilinear resize on float32 CHW, as F.interpolate computes it.
     tensors, cases = {}, []
@@ -354,9 +361,7 @@ def main():
         store_modes(tensors, f"resize/{name}", ys)
         cases.append({"name": name, "channels": c, "in": [h, w], "out": [oh, ow],
                       "threads_differ": bool(f"resize/{name}/threads_one" in tensors)})
-    save_file(tensors, os.path.join(out, "resize.safetensors"),
-              metadata={"versions": json.dumps(versions), "cases": json.dumps(cases),
-                        "thread_modes": json.dumps(THREAD_MODES)})
+    save(tensors, out, "resize.safetensors", {"versions": versions, "cases": cases, "thread_modes": THREAD_MODES})
 
     # Full SmolVLA image preprocessing from uint8 pixels.
     tensors, cases = {}, []
@@ -380,9 +385,8 @@ def main():
             errors.append({"name": name, "in": [h, w], "out": [oh, ow], "torch_error": str(e).splitlines()[0]})
         else:
             raise AssertionError(f"torch accepted {name}")
-    save_file(tensors, os.path.join(out, "preprocess.safetensors"),
-              metadata={"versions": json.dumps(versions), "cases": json.dumps(cases), "errors": json.dumps(errors),
-                        "thread_modes": json.dumps(THREAD_MODES)})
+    save(tensors, out, "preprocess.safetensors",
+         {"versions": versions, "cases": cases, "errors": errors, "thread_modes": THREAD_MODES})
 
     total = 0
     for root, _, names in os.walk(out):
