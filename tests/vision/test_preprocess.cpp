@@ -52,7 +52,7 @@ TEST(VisionPreprocess, SmolvlaMatchesLerobotBitExactly) {
       ASSERT_EQ(want.shape, (Shape{3, out_h, out_w})) << key;
       std::vector<float> got(want.numel(), 42.0f);  // poison: every element must be written
       preprocess_smolvla(img, out_h, out_w, got.data(), threads);
-      const Diff d = compare(got.data(), want.as<float>(), want.numel());
+      const Diff d = compare(got.data(), f32_values(want).data(), want.numel());
       std::printf("  %-28s %4dx%-4d -> %dx%d threads=%-4s max|diff| %.3g (%lld differ)\n",
                   name.c_str(), img.height, img.width, out_h, out_w, mode, d.max_abs,
                   (long long)d.mismatched);

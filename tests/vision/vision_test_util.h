@@ -8,6 +8,7 @@
 #include <string>
 #include <vector>
 
+#include "core/error.h"
 #include "core/json_util.h"
 #include "core/safetensors.h"
 
@@ -21,6 +22,17 @@ inline std::vector<uint8_t> read_bytes(const std::string& path) {
   std::ifstream f(path, std::ios::binary);
   return std::vector<uint8_t>((std::istreambuf_iterator<char>(f)),
                               std::istreambuf_iterator<char>());
+}
+
+// A float32 tensor's values in an aligned buffer. Views into a safetensors file need not be 4-byte
+// aligned (a file mixing uint8 and float32 tensors can place a float tensor at an odd offset), so
+// the bytes are copied rather than read through a float pointer.
+inline std::vector<float> f32_values(const Tensor& t) {
+  if (t.dtype != DType::f32)
+    throw Error(ErrorCode::invalid_argument, "fixture tensor is not float32");
+  std::vector<float> v(std::size_t(t.numel()));
+  std::memcpy(v.data(), t.data, v.size() * sizeof(float));
+  return v;
 }
 
 struct Diff {
