@@ -4,8 +4,8 @@
 //   scale = float(in) / float(out)                     (float32 division)
 //   src   = fma(scale, float(o) + 0.5f, -0.5f)         (x86 builds contract this into one FMA)
 //   src   = max(src, 0);  i0 = min(int(src), in - 1);  i1 = i0 + (i0 < in - 1)
-//   l1    = clamp(src - i0, 0, 1);  l0 = 1 - l1;       and in == out gives i0 = i1 = o, l0 = 1, l1
-//   = 0.
+//   l1    = clamp(src - i0, 0, 1);  l0 = 1 - l1
+//   (and in == out gives i0 = i1 = o, l0 = 1, l1 = 0).
 // Then one of two kernels (see TorchThreads in preprocess.h), with these exact fusions:
 //   separable: t0 = fma(x00, w0, x01 * w1); t1 = fma(x10, w0, x11 * w1); y = fma(t0, h0, t1 * h1)
 //   four-tap:  y = fma(x11, h1*w1, fma(x10, h1*w0, fma(x00, h0*w0, x01 * (h0*w1))))
