@@ -1,5 +1,7 @@
 #include "core/tensor.h"
 
+#include <cstring>
+
 #include "core/error.h"
 
 namespace tether {
@@ -19,29 +21,43 @@ int64_t shape_numel(const Shape& shape) {
   return n;
 }
 
+namespace {
+
+// Element loads go through memcpy: safetensors writers do not all align tensors to their element size.
+template <typename T>
+T load(const void* base, int64_t i) {
+  T v;
+  std::memcpy(&v, static_cast<const char*>(base) + i * int64_t(sizeof(T)), sizeof(T));
+  return v;
+}
+
+}  // namespace
+
 std::vector<float> Tensor::to_f32() const {
   const int64_t n = numel();
   std::vector<float> out(n);
-  auto convert = [&](auto load) {
-    for (int64_t i = 0; i < n; ++i) out[i] = load(i);
+  auto convert = [&](auto fn) {
+    for (int64_t i = 0; i < n; ++i) out[i] = fn(i);
   };
   switch (dtype) {
-    case DType::f32: convert([&](int64_t i) { return as<float>()[i]; }); break;
-    case DType::f64: convert([&](int64_t i) { return float(as<double>()[i]); }); break;
-    case DType::bf16: convert([&](int64_t i) { return bf16_to_f32(as<uint16_t>()[i]); }); break;
-    case DType::f16: convert([&](int64_t i) { return f16_to_f32(as<uint16_t>()[i]); }); break;
-    case DType::i64: convert([&](int64_t i) { return float(as<int64_t>()[i]); }); break;
-    case DType::i32: convert([&](int64_t i) { return float(as<int32_t>()[i]); }); break;
-    case DType::i16: convert([&](int64_t i) { return float(as<int16_t>()[i]); }); break;
-    case DType::i8: convert([&](int64_t i) { return float(as<int8_t>()[i]); }); break;
+    case DType::f32: if (n) std::memcpy(out.data(), data, std::size_t(n) * 4); break;
+    case DType::f64: convert([&](int64_t i) { return float(load<double>(data, i)); }); break;
+    case DType::bf16: convert([&](int64_t i) { return bf16_to_f32(load<uint16_t>(data, i)); }); break;
+    case DType::f16: convert([&](int64_t i) { return f16_to_f32(load<uint16_t>(data, i)); }); break;
+    case DType::i64: convert([&](int64_t i) { return float(load<int64_t>(data, i)); }); break;
+    case DType::i32: convert([&](int64_t i) { return float(load<int32_t>(data, i)); }); break;
+    case DType::i16: convert([&](int64_t i) { return float(load<int16_t>(data, i)); }); break;
+    case DType::i8: convert([&](int64_t i) { return float(load<int8_t>(data, i)); }); break;
     case DType::u8:
-    case DType::boolean: convert([&](int64_t i) { return float(as<uint8_t>()[i]); }); break;
+    case DType::boolean: convert([&](int64_t i) { return float(load<uint8_t>(data, i)); }); break;
   }
   return out;
 }
 
+bool Tensor::aligned() const { return reinterpret_cast<uintptr_t>(data) % dtype_size(dtype) == 0; }
+
 const float* Tensor::f32_data(std::vector<float>& scratch) const {
-  if (dtype == DType::f32) return as<float>();
+  if (dtype == DType::f32 && aligned()) return as<float>();
   scratch = to_f32();
   return scratch.data();
 }

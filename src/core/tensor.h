@@ -26,12 +26,14 @@ struct Tensor {
   std::size_t nbytes() const { return std::size_t(numel()) * dtype_size(dtype); }
   int64_t dim(int i) const { return shape.at(i < 0 ? shape.size() + i : i); }
 
+  // Typed pointer; only valid when aligned() (a file may place a tensor at any byte offset).
   template <typename T>
   const T* as() const { return static_cast<const T*>(data); }
+  bool aligned() const;
 
   // Converts any float or integer dtype to float32 (copy).
   std::vector<float> to_f32() const;
-  // Float32 data, zero-copy when already f32; otherwise converted into `scratch`.
+  // Float32 data, zero-copy when already aligned f32; otherwise converted into `scratch`.
   const float* f32_data(std::vector<float>& scratch) const;
 
   // An owning f32 tensor holding `values`.

@@ -12,7 +12,9 @@ const float* Weights::f32(const std::string& name, const Shape& shape) {
   Tensor t = file_.get(name);
   if (stored_dtype_.empty()) stored_dtype_ = std::string(dtype_name(t.dtype));
   switch (t.dtype) {
-    case DType::f32: return t.as<float>();
+    case DType::f32:
+      if (t.aligned()) return t.as<float>();  // in place from the mmap
+      [[fallthrough]];
     case DType::bf16:
     case DType::f16: widened_.push_back(t.to_f32()); return widened_.back().data();
     default:

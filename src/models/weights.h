@@ -1,5 +1,6 @@
 // Checked access to a checkpoint's tensors: every weight is verified for name, shape and dtype before use.
-// float32 tensors are used in place from the mmap; bf16/f16 tensors are widened once at load time.
+// float32 tensors are used in place from the mmap; bf16/f16 (and misaligned f32) tensors are copied to float32
+// once at load time.
 #pragma once
 
 #include <deque>
