@@ -16,6 +16,7 @@ from pathlib import Path
 
 os.environ.setdefault("RAYON_NUM_THREADS", "1")  # training ties break deterministically on one thread
 os.environ.setdefault("TOKENIZERS_PARALLELISM", "false")
+os.environ.setdefault("HF_HUB_OFFLINE", "1")
 
 import tokenizers  # noqa: E402
 import transformers  # noqa: E402
@@ -166,6 +167,9 @@ def make_cases(rng, count):
         "supercalifragilisticexpialidocious", "pick. place, push; pull: lift-lower--rotate---",
         "...", "a.b.c", "x - y -- z", "Mr. Robot, 3.5 cm; left:right", "\t\ttabs\tand\t spaces",
         "Grab the cup. grab THE CUP.", "ﬁne ﬀ ① ²", "Ångström Å Å", "\u1100\u1161\u11a8 \uac01",
+        # The crate normalises with Unicode 9.0 tables: later decompositions and combining classes
+        # (U+32FF, U+1FBF0.., U+0D3B) are left alone.
+        "\u32ff \U0001fbf0\U0001fbf9 \U0001f16c", "a\u0d3b\u0301 a\u0301\u0d3b", "\u0130 \u03a3 \u1e9e",
     ]
     cases = list(fixed)
     while len(cases) < count:
@@ -192,7 +196,7 @@ def make_cases(rng, count):
         if c not in seen:
             seen.add(c)
             unique.append(c)
-    return unique
+    return unique, len(fixed)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -208,14 +212,18 @@ def train(tok, lines, vocab_size, special_tokens, byte_level=True, limit_alphabe
     return tok
 
 
-def build_smollm(lines):
+def build_smollm(lines, digits_in_training=True):
+    """SmolLM2/SmolVLM layout. Trained without the Digits split, the vocabulary gets multi-digit
+    merges, which makes the file's Digits pre-tokenizer observable (used for the GPT2Tokenizer case)."""
     tok = Tokenizer(models.BPE())
-    tok.pre_tokenizer = pre_tokenizers.Sequence(
+    smol_pre = pre_tokenizers.Sequence(
         [pre_tokenizers.Digits(individual_digits=True), pre_tokenizers.ByteLevel(add_prefix_space=False, use_regex=True)]
     )
+    tok.pre_tokenizer = smol_pre if digits_in_training else pre_tokenizers.ByteLevel(add_prefix_space=False)
     tok.decoder = decoders.ByteLevel()
     tok.post_processor = processors.ByteLevel(trim_offsets=False)
     train(tok, lines, 1200, SMOL_SPECIAL[:3])
+    tok.pre_tokenizer = smol_pre
     tok.add_special_tokens([AddedToken(t, special=True, normalized=False) for t in SMOL_SPECIAL[3:]])
     tok.add_tokens(
         [
@@ -351,19 +359,19 @@ def write_jsonl(path, rows):
 def main():
     ap = argparse.ArgumentParser()
     ap.add_argument("--out", default=str(REPO / "tests/fixtures/tokenizer"))
-    ap.add_argument("--cases", type=int, default=2000)
+    ap.add_argument("--cases", type=int, default=1800)
     args = ap.parse_args()
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
 
     lines = corpus(random.Random(1234))
-    cases = make_cases(random.Random(5678), args.cases)
+    cases, n_fixed = make_cases(random.Random(5678), args.cases)
 
     gpt2_trunc = build_gpt2(lines, add_prefix_space=True)
     gpt2_trunc.enable_truncation(max_length=10, direction="left")
     gpt2_trunc.enable_padding(length=14, direction="left", pad_id=0, pad_token="<|endoftext|>")
 
-    # name -> (tokenizer, every n-th case is used)
+    # name -> (tokenizer, every n-th case is used; the hand-written cases always are)
     tokenizers_by_name = {
         "smollm": (build_smollm(lines), 1),
         "gpt2": (merges_as_strings(build_gpt2(lines)), 2),
@@ -383,46 +391,85 @@ def main():
     }
     write_jsonl(out / "cases.jsonl", [{"meta": meta}] + [{"i": i, "text": t} for i, t in enumerate(cases)])
 
-    for name, (tok, stride) in tokenizers_by_name.items():
-        d = out / name
-        d.mkdir(exist_ok=True)
-        tok.save(str(d / "tokenizer.json"), pretty=False)
-        tok = Tokenizer.from_file(str(d / "tokenizer.json"))  # expectations come from the file as written
-        rows = [{"meta": dict(meta, vocab_size=tok.get_vocab_size(with_added_tokens=True), special_stride=4)}]
-        for i in range(0, len(cases), stride):
+    def expectations(encode, decode, vocab_size, stride, extra_meta=None):
+        rows = [{"meta": dict(meta, vocab_size=vocab_size, special_stride=4, **(extra_meta or {}))}]
+        for i in range(len(cases)):
+            if i >= n_fixed and i % stride != 0:
+                continue
             text = cases[i]
-            plain = tok.encode(text, add_special_tokens=False).ids
-            special = tok.encode(text, add_special_tokens=True).ids
+            plain = encode(text, False)
+            special = encode(text, True)
             row = {"i": i, "ids": plain}
             # With a template the with-specials ids are kept for every 4th case only (file size).
             if special != plain and i % 4 == 0:
                 row["ids_special"] = special
             if i % 4 == 0:
-                row["decode"] = tok.decode(special, skip_special_tokens=False)
-                row["decode_skip"] = tok.decode(special, skip_special_tokens=True)
+                row["decode"] = decode(special, False)
+                row["decode_skip"] = decode(special, True)
             rows.append(row)
+        return rows
+
+    for name, (tok, stride) in tokenizers_by_name.items():
+        d = out / name
+        d.mkdir(exist_ok=True)
+        tok.save(str(d / "tokenizer.json"), pretty=False)
+        tok = Tokenizer.from_file(str(d / "tokenizer.json"))  # expectations come from the file as written
+        rows = expectations(
+            lambda t, sp, tok=tok: tok.encode(t, add_special_tokens=sp).ids,
+            lambda ids, skip, tok=tok: tok.decode(ids, skip_special_tokens=skip),
+            tok.get_vocab_size(with_added_tokens=True), stride,
+        )
         write_jsonl(d / "expected.jsonl", rows)
+
+    # A checkpoint-style directory whose tokenizer_config.json names GPT2Tokenizer, as SmolVLM's
+    # does: transformers rebuilds that class's pipeline (ByteLevel only, no Digits split), so the
+    # expectations come from transformers, not from tokenizer.json alone.
+    d = out / "smollm_gpt2cls"
+    d.mkdir(exist_ok=True)
+    build_smollm(lines, digits_in_training=False).save(str(d / "tokenizer.json"), pretty=False)
+    config = {
+        "tokenizer_class": "GPT2Tokenizer", "backend": "tokenizers", "add_prefix_space": False,
+        "bos_token": "<|im_start|>", "eos_token": "<end_of_utterance>", "pad_token": "<|im_end|>",
+        "unk_token": "<|endoftext|>", "mask_token": "<mask_tok>", "extra_special_tokens": [],
+        "truncation_side": "left", "clean_up_tokenization_spaces": False, "model_max_length": 8192,
+    }
+    (d / "tokenizer_config.json").write_text(json.dumps(config, indent=2) + "\n", encoding="utf-8")
+    gpt2cls = transformers.AutoTokenizer.from_pretrained(str(d))
+    assert type(gpt2cls).__name__ == "GPT2Tokenizer", type(gpt2cls)
+    backend = gpt2cls.backend_tokenizer
+    rows = expectations(
+        lambda t, sp: gpt2cls(t, add_special_tokens=sp)["input_ids"],
+        lambda ids, skip: backend.decode(ids, skip_special_tokens=skip),
+        backend.get_vocab_size(with_added_tokens=True), 3,
+        {"class": type(gpt2cls).__name__, "effective_pre_tokenizer": json.loads(backend.to_str())["pre_tokenizer"]},
+    )
+    write_jsonl(d / "expected.jsonl", rows)
 
     # Batches through transformers, the way lerobot's tokenizer step calls it.
     rng = random.Random(91011)
     batch_rows = [{"meta": meta}]
-    pad_tokens = {"smollm": "<|im_end|>", "llama3": "<|end_of_text|>", "misc": "[EOS]"}
+    pad_tokens = {"smollm": "<|im_end|>", "llama3": "<|end_of_text|>", "misc": "[EOS]", "smollm_gpt2cls": None}
     for name, pad in pad_tokens.items():
-        hf = transformers.PreTrainedTokenizerFast(tokenizer_file=str(out / name / "tokenizer.json"), pad_token=pad)
+        if pad is None:
+            hf = gpt2cls  # sides and pad token from its tokenizer_config.json
+        else:
+            hf = transformers.PreTrainedTokenizerFast(tokenizer_file=str(out / name / "tokenizer.json"), pad_token=pad)
         for k in range(12):
             texts = [cases[rng.randrange(len(cases))] + "\n" for _ in range(rng.randint(1, 5))]
             if k == 0:
                 texts = ["Pick up the red cube and place it in the bowl.\n"]
             padding = ["longest", "max_length"][k % 2]
             max_length = [48, 48, 8, 3, 16, 2][k % 6] if name != "misc" else [48, 8, 3, 16][k % 4]
-            side = "right" if k < 8 else "left"
             add_special = k != 5
-            enc = hf(texts, padding=padding, max_length=max_length, truncation=True, padding_side=side,
-                     add_special_tokens=add_special)
+            kwargs = dict(padding=padding, max_length=max_length, truncation=True, add_special_tokens=add_special)
+            if pad is not None:
+                kwargs["padding_side"] = "right" if k < 8 else "left"
+            enc = hf(texts, **kwargs)
             batch_rows.append(
                 {
                     "tokenizer": name, "texts": texts, "padding": padding, "max_length": max_length,
-                    "padding_side": side, "pad_token_id": hf.pad_token_id, "add_special_tokens": add_special,
+                    "padding_side": kwargs.get("padding_side", hf.padding_side), "truncation_side": hf.truncation_side,
+                    "pad_token_id": hf.pad_token_id, "add_special_tokens": add_special,
                     "input_ids": enc["input_ids"], "attention_mask": enc["attention_mask"],
                 }
             )

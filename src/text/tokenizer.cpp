@@ -1,0 +1,483 @@
+// Tokenizer: loads tokenizer.json and runs the pipeline added tokens -> normalizer -> pre-tokenizer
+// -> BPE -> truncation -> post-processor -> padding, in the Rust crate's order.
+#include "text/tokenizer.h"
+
+#include <algorithm>
+#include <fstream>
+#include <unordered_set>
+
+#include "core/error.h"
+#include "core/json_util.h"
+#include "text/added_vocabulary.h"
+#include "text/bpe.h"
+#include "text/pipeline.h"
+#include "text/unicode.h"
+
+namespace tether::text {
+
+struct Truncation {
+  std::size_t max_length = 0;
+  bool left = false;  // direction "Left" keeps the end of the sequence
+};
+
+struct PaddingConfig {
+  std::optional<std::size_t> fixed;  // nullopt: BatchLongest (a no-op on a single sequence)
+  std::size_t multiple_of = 0;
+  bool left = false;
+  int32_t pad_id = 0;
+};
+
+struct TokenizerImpl {
+  std::string where;
+  std::unique_ptr<BpeModel> model;
+  std::unique_ptr<Normalizer> normalizer;
+  std::unique_ptr<PreTokenizer> pre_tokenizer;
+  std::unique_ptr<PostProcessor> post_processor;
+  std::unique_ptr<Decoder> decoder;
+  std::unique_ptr<AddedVocabulary> added;
+  std::optional<Truncation> truncation;
+  std::optional<PaddingConfig> padding;
+  int32_t vocab_size = 0;
+
+  std::string normalize(std::string_view s) const {
+    return normalizer ? normalizer->normalize(s) : std::string(s);
+  }
+
+  // Ids of `text` before truncation and post-processing.
+  std::vector<int32_t> tokenize(std::string_view text) const {
+    if (const std::size_t bad = find_invalid_utf8(text); bad != std::string_view::npos)
+      throw Error(ErrorCode::invalid_argument,
+                  "text to tokenize is not valid UTF-8 (byte " + std::to_string(bad) + ")");
+    std::vector<Piece> pieces =
+        added->extract_and_normalize(text, [this](std::string_view s) { return normalize(s); });
+    if (pre_tokenizer) pre_tokenizer->pre_tokenize(pieces);
+    std::vector<int32_t> ids;
+    ids.reserve(text.size());
+    for (const Piece& p : pieces) {
+      if (p.id >= 0) {
+        ids.push_back(p.id);
+      } else {
+        model->tokenize(p.text, ids);
+      }
+    }
+    return ids;
+  }
+
+  int added_tokens(bool add_special_tokens) const {
+    return add_special_tokens && post_processor ? post_processor->added_tokens_single() : 0;
+  }
+
+  // Truncates so the post-processed sequence fits `max_length`. Like the crate (built without
+  // overflow checks), a limit below the number of added tokens wraps around and truncates nothing.
+  void truncate(std::vector<int32_t>& ids, std::size_t max_length, bool left,
+                bool add_special_tokens) const {
+    const auto n_added = static_cast<std::size_t>(added_tokens(add_special_tokens));
+    std::size_t limit = max_length;
+    if (n_added > 0) {
+      if (max_length < n_added) return;
+      limit = max_length - n_added;
+    }
+    if (ids.size() <= limit) return;
+    if (left) {
+      ids.erase(ids.begin(), ids.end() - static_cast<std::ptrdiff_t>(limit));
+    } else {
+      ids.resize(limit);
+    }
+  }
+
+  void post_process(std::vector<int32_t>& ids, bool add_special_tokens) const {
+    if (post_processor) post_processor->process(ids, add_special_tokens);
+  }
+};
+
+namespace {
+
+AddedToken parse_added_token(const Json& j, const std::string& where) {
+  if (!j.is_object()) throw Error(ErrorCode::format, where + " is not an object");
+  AddedToken t;
+  t.content = json_get<std::string>(j, "content", where);
+  t.single_word = json_get_or<bool>(j, "single_word", false, where);
+  t.lstrip = json_get_or<bool>(j, "lstrip", false, where);
+  t.rstrip = json_get_or<bool>(j, "rstrip", false, where);
+  t.normalized = json_get_or<bool>(j, "normalized", true, where);
+  t.special = json_get_or<bool>(j, "special", false, where);
+  return t;
+}
+
+std::optional<Truncation> parse_truncation(const Json& j, const std::string& where) {
+  if (j.is_null()) return std::nullopt;
+  if (!j.is_object()) throw Error(ErrorCode::format, where + " is not an object");
+  Truncation t;
+  t.max_length = json_get<std::size_t>(j, "max_length", where);
+  const auto direction = json_get_or<std::string>(j, "direction", "Right", where);
+  if (direction != "Left" && direction != "Right")
+    throw Error(ErrorCode::format,
+                where + ".direction '" + direction + "' is neither Left nor Right");
+  t.left = direction == "Left";
+  // Strategy and stride only matter for pairs and overflowing windows, which Tether does not
+  // produce.
+  return t;
+}
+
+std::optional<PaddingConfig> parse_padding(const Json& j, const std::string& where) {
+  if (j.is_null()) return std::nullopt;
+  if (!j.is_object()) throw Error(ErrorCode::format, where + " is not an object");
+  PaddingConfig p;
+  auto st = j.find("strategy");
+  if (st == j.end()) throw Error(ErrorCode::not_found, where + ": missing field 'strategy'");
+  if (st->is_string() && st->get<std::string>() == "BatchLongest") {
+    p.fixed.reset();
+  } else if (st->is_object() && st->contains("Fixed") && (*st)["Fixed"].is_number_unsigned()) {
+    p.fixed = (*st)["Fixed"].get<std::size_t>();
+  } else {
+    throw Error(ErrorCode::format, where + ".strategy " + st->dump() +
+                                       " is neither \"BatchLongest\" nor {\"Fixed\": n}");
+  }
+  const auto direction = json_get_or<std::string>(j, "direction", "Right", where);
+  if (direction != "Left" && direction != "Right")
+    throw Error(ErrorCode::format,
+                where + ".direction '" + direction + "' is neither Left nor Right");
+  p.left = direction == "Left";
+  p.multiple_of = json_get_or<std::size_t>(j, "pad_to_multiple_of", 0, where);
+  p.pad_id = json_get_or<int32_t>(j, "pad_id", 0, where);
+  return p;
+}
+
+// How the pipeline deviates from the file (transformers class rebuilds, extra added tokens).
+struct BuildOptions {
+  bool gpt2_class = false;  // transformers' GPT2Tokenizer: ByteLevel only, BPE options reset
+  bool add_prefix_space = false;
+  std::optional<std::vector<AddedToken>> added;  // replaces the file's added_tokens
+  std::vector<AddedToken> extra;                 // registered after them
+};
+
+std::shared_ptr<TokenizerImpl> build(const Json& root, const std::string& where,
+                                     const BuildOptions& opt = {}) {
+  if (!root.is_object()) throw Error(ErrorCode::format, where + ": top level is not a JSON object");
+  if (auto v = root.find("version"); v != root.end() && !v->is_null()) {
+    if (!v->is_string() || v->get<std::string>() != "1.0")
+      throw Error(ErrorCode::unsupported,
+                  where + ": version " + v->dump() + " is not supported (expected \"1.0\")");
+  }
+  auto impl = std::make_shared<TokenizerImpl>();
+  impl->where = where;
+  auto field = [&](const char* key) -> const Json& {
+    static const Json null_json;
+    auto it = root.find(key);
+    return it == root.end() ? null_json : *it;
+  };
+  const Json& model = field("model");
+  if (model.is_null()) throw Error(ErrorCode::not_found, where + ": missing field 'model'");
+  if (opt.gpt2_class) {
+    // The class builds BPE(vocab, merges) with default options and its own stages around it.
+    Json rebuilt = Json::object();
+    for (const char* key : {"type", "vocab", "merges"})
+      if (model.is_object() && model.contains(key)) rebuilt[key] = model[key];
+    impl->model = std::make_unique<BpeModel>(rebuilt, where);
+    const Json byte_level = {
+        {"type", "ByteLevel"}, {"add_prefix_space", opt.add_prefix_space}, {"use_regex", true}};
+    impl->pre_tokenizer = make_pre_tokenizer(byte_level, where + ": GPT2Tokenizer pre_tokenizer");
+    impl->decoder = make_decoder(byte_level, where + ": GPT2Tokenizer decoder");
+  } else {
+    impl->model = std::make_unique<BpeModel>(model, where);
+    impl->normalizer = make_normalizer(field("normalizer"), where + ": normalizer");
+    impl->pre_tokenizer = make_pre_tokenizer(field("pre_tokenizer"), where + ": pre_tokenizer");
+    impl->decoder = make_decoder(field("decoder"), where + ": decoder");
+  }
+  impl->post_processor = make_post_processor(field("post_processor"), where + ": post_processor");
+  impl->truncation = parse_truncation(field("truncation"), where + ": truncation");
+  impl->padding = parse_padding(field("padding"), where + ": padding");
+
+  std::vector<AddedToken> tokens;
+  const Json& added = field("added_tokens");
+  if (opt.added) {
+    tokens = *opt.added;
+  } else if (!added.is_null()) {
+    if (!added.is_array()) throw Error(ErrorCode::format, where + ": added_tokens is not an array");
+    for (std::size_t k = 0; k < added.size(); ++k)
+      tokens.push_back(
+          parse_added_token(added[k], where + ": added_tokens[" + std::to_string(k) + "]"));
+  }
+  tokens.insert(tokens.end(), opt.extra.begin(), opt.extra.end());
+  const TokenizerImpl* raw = impl.get();
+  impl->added = std::make_unique<AddedVocabulary>(
+      tokens, *impl->model, [raw](std::string_view s) { return raw->normalize(s); });
+
+  std::unordered_set<std::string_view> distinct;
+  for (const auto& [token, id] : impl->model->vocab()) distinct.insert(token);
+  for (const auto& [token, id] : impl->added->contents()) distinct.insert(token);
+  impl->vocab_size = static_cast<int32_t>(distinct.size());
+  return impl;
+}
+
+}  // namespace
+
+Tokenizer Tokenizer::from_file(const std::string& path) {
+  return Tokenizer(build(read_json_file(path), path));
+}
+
+Tokenizer Tokenizer::from_json_string(std::string_view json, const std::string& where) {
+  Json root = Json::parse(json, nullptr, /*allow_exceptions=*/false);
+  if (root.is_discarded()) throw Error(ErrorCode::format, where + ": not valid JSON");
+  return Tokenizer(build(root, where));
+}
+
+Tokenizer Tokenizer::from_transformers_dir(const std::string& dir) {
+  return load_pretrained_tokenizer(dir).tokenizer;
+}
+
+namespace {
+
+// A special-token entry of tokenizer_config.json: a string or an AddedToken dict.
+std::optional<AddedToken> config_token(const Json& v, const std::string& where) {
+  if (v.is_null()) return std::nullopt;
+  AddedToken t;
+  if (v.is_string()) {
+    t.content = v.get<std::string>();
+    t.special = true;
+    t.normalized = false;
+  } else if (v.is_object()) {
+    t = parse_added_token(v, where);
+    t.special = true;
+  } else {
+    throw Error(ErrorCode::format, where + " is neither a string nor an AddedToken object");
+  }
+  return t;
+}
+
+std::string side(const Json& config, const char* key, const std::string& where) {
+  const auto v = json_get_or<std::string>(config, key, "right", where);
+  if (v != "left" && v != "right")
+    throw Error(ErrorCode::format, where + ": " + key + " '" + v + "' is neither left nor right");
+  return v;
+}
+
+}  // namespace
+
+PretrainedTokenizer load_pretrained_tokenizer(const std::string& dir) {
+  const std::string json_path = dir + "/tokenizer.json";
+  const std::string config_path = dir + "/tokenizer_config.json";
+  const Json root = read_json_file(json_path);
+  Json config = Json::object();
+  {
+    std::ifstream probe(config_path);
+    if (probe) config = read_json_file(config_path);
+  }
+  if (!config.is_object())
+    throw Error(ErrorCode::format, config_path + ": top level is not an object");
+
+  BuildOptions opt;
+  std::string cls = json_get_or<std::string>(config, "tokenizer_class", "", config_path);
+  std::string base = cls;
+  if (base.size() > 4 && base.compare(base.size() - 4, 4, "Fast") == 0 &&
+      base != "PreTrainedTokenizerFast")
+    base.resize(base.size() - 4);
+  if (base == "GPT2Tokenizer") {
+    opt.gpt2_class = true;
+    opt.add_prefix_space = json_get_or<bool>(config, "add_prefix_space", false, config_path);
+  } else if (!(base.empty() || base == "PreTrainedTokenizerFast" || base == "TokenizersBackend")) {
+    throw Error(ErrorCode::unsupported,
+                config_path + ": tokenizer_class '" + cls +
+                    "' is not supported (transformers rebuilds it in a class-specific way)");
+  }
+
+  // Added tokens: the config's added_tokens_decoder when present (transformers prefers it), in id
+  // order.
+  std::vector<AddedToken> added;
+  if (auto it = config.find("added_tokens_decoder"); it != config.end() && !it->is_null()) {
+    if (!it->is_object())
+      throw Error(ErrorCode::format, config_path + ": added_tokens_decoder is not an object");
+    std::vector<std::pair<long, AddedToken>> by_id;
+    for (auto e = it->begin(); e != it->end(); ++e) {
+      long id = 0;
+      try {
+        id = std::stol(e.key());
+      } catch (const std::exception&) {
+        throw Error(ErrorCode::format,
+                    config_path + ": added_tokens_decoder key '" + e.key() + "' is not an id");
+      }
+      by_id.emplace_back(
+          id, parse_added_token(*e, config_path + ": added_tokens_decoder['" + e.key() + "']"));
+    }
+    std::stable_sort(by_id.begin(), by_id.end(),
+                     [](const auto& a, const auto& b) { return a.first < b.first; });
+    if (opt.gpt2_class) {
+      std::vector<AddedToken> list;
+      for (auto& [id, t] : by_id) list.push_back(std::move(t));
+      opt.added = std::move(list);
+    } else {
+      for (auto& [id, t] : by_id) added.push_back(std::move(t));
+    }
+  }
+  std::vector<std::string> known;
+  auto remember = [&](const std::vector<AddedToken>& list) {
+    for (const AddedToken& t : list) known.push_back(t.content);
+  };
+  if (opt.added) {
+    remember(*opt.added);
+  } else if (auto it = root.find("added_tokens"); it != root.end() && it->is_array()) {
+    for (const Json& t : *it)
+      if (t.is_object() && t.contains("content") && t["content"].is_string())
+        known.push_back(t["content"].get<std::string>());
+  }
+  remember(added);
+  opt.extra = std::move(added);
+  std::vector<std::pair<std::string, AddedToken>> named;
+  for (const char* key : {"bos_token", "eos_token", "unk_token", "sep_token", "pad_token",
+                          "cls_token", "mask_token"}) {
+    if (auto it = config.find(key); it != config.end())
+      if (auto t = config_token(*it, config_path + ": " + key)) named.emplace_back(key, *t);
+  }
+  if (auto it = config.find("extra_special_tokens"); it != config.end() && !it->is_null()) {
+    if (it->is_array()) {
+      for (std::size_t k = 0; k < it->size(); ++k)
+        if (auto t = config_token(
+                (*it)[k], config_path + ": extra_special_tokens[" + std::to_string(k) + "]"))
+          named.emplace_back("", *t);
+    } else if (it->is_object()) {
+      for (auto e = it->begin(); e != it->end(); ++e)
+        if (auto t = config_token(*e, config_path + ": extra_special_tokens." + e.key()))
+          named.emplace_back("", *t);
+    }
+  }
+  for (const auto& [key, t] : named) {
+    if (std::find(known.begin(), known.end(), t.content) == known.end()) {
+      opt.extra.push_back(t);
+      known.push_back(t.content);
+    }
+  }
+
+  Tokenizer tok(build(root, json_path, opt));
+  PretrainedTokenizer out{tok, cls, BatchOptions{}, std::nullopt, std::nullopt, std::nullopt};
+  out.defaults.truncate_right = side(config, "truncation_side", config_path) == "right";
+  out.defaults.pad_right = side(config, "padding_side", config_path) == "right";
+  auto id_of = [&](const char* key) -> std::optional<int32_t> {
+    for (const auto& [k, t] : named)
+      if (k == key) return tok.token_to_id(t.content);
+    return std::nullopt;
+  };
+  out.bos_token_id = id_of("bos_token");
+  out.eos_token_id = id_of("eos_token");
+  out.pad_token_id = id_of("pad_token");
+  if (out.pad_token_id) out.defaults.pad_token_id = *out.pad_token_id;
+  return out;
+}
+
+std::vector<int32_t> Tokenizer::encode(std::string_view text, bool add_special_tokens) const {
+  const TokenizerImpl& t = *impl_;
+  std::vector<int32_t> ids = t.tokenize(text);
+  if (t.truncation)
+    t.truncate(ids, t.truncation->max_length, t.truncation->left, add_special_tokens);
+  t.post_process(ids, add_special_tokens);
+  if (t.padding && t.padding->fixed) {
+    std::size_t target = *t.padding->fixed;
+    if (t.padding->multiple_of > 0 && target % t.padding->multiple_of != 0)
+      target += t.padding->multiple_of - target % t.padding->multiple_of;
+    if (ids.size() < target) {
+      const auto n = static_cast<std::ptrdiff_t>(target - ids.size());
+      ids.insert(t.padding->left ? ids.begin() : ids.end(), static_cast<std::size_t>(n),
+                 t.padding->pad_id);
+    }
+  } else if (t.padding && t.padding->multiple_of > 0 && ids.size() % t.padding->multiple_of != 0) {
+    const std::size_t target =
+        ids.size() + t.padding->multiple_of - ids.size() % t.padding->multiple_of;
+    ids.insert(t.padding->left ? ids.begin() : ids.end(), target - ids.size(), t.padding->pad_id);
+  }
+  return ids;
+}
+
+std::string Tokenizer::decode(const std::vector<int32_t>& ids, bool skip_special_tokens) const {
+  const TokenizerImpl& t = *impl_;
+  std::vector<std::string> tokens;
+  tokens.reserve(ids.size());
+  for (int32_t id : ids) {
+    const std::string* token = nullptr;
+    if (const AddedToken* a = t.added->token_for_id(id)) {
+      token = &a->content;
+    } else {
+      token = t.model->id_to_token(id);
+    }
+    if (!token) continue;
+    if (skip_special_tokens && t.added->is_special(*token)) continue;
+    tokens.push_back(*token);
+  }
+  if (t.decoder) return t.decoder->decode(tokens);
+  std::string out;
+  for (std::size_t k = 0; k < tokens.size(); ++k) {
+    if (k) out += ' ';
+    out += tokens[k];
+  }
+  return out;
+}
+
+std::optional<int32_t> Tokenizer::token_to_id(std::string_view token) const {
+  if (auto id = impl_->added->token_to_id(token)) return id;
+  return impl_->model->token_to_id(token);
+}
+
+std::optional<std::string> Tokenizer::id_to_token(int32_t id) const {
+  if (const AddedToken* a = impl_->added->token_for_id(id)) return a->content;
+  if (const std::string* s = impl_->model->id_to_token(id)) return *s;
+  return std::nullopt;
+}
+
+int32_t Tokenizer::vocab_size() const { return impl_->vocab_size; }
+
+int Tokenizer::num_special_tokens_to_add() const { return impl_->added_tokens(true); }
+
+BatchEncoding encode_batch(const Tokenizer& tokenizer, const std::vector<std::string>& texts,
+                           const BatchOptions& options, bool add_special_tokens) {
+  const TokenizerImpl& t = *tokenizer.impl_;
+  if (options.max_length < 0)
+    throw Error(ErrorCode::invalid_argument, "encode_batch: max_length is negative");
+  if (options.padding == Padding::max_length && options.max_length == 0)
+    throw Error(ErrorCode::invalid_argument,
+                "encode_batch: padding max_length needs max_length > 0");
+  std::vector<std::vector<int32_t>> rows;
+  rows.reserve(texts.size());
+  std::size_t longest = 0;
+  for (const std::string& text : texts) {
+    std::vector<int32_t> ids = t.tokenize(text);
+    if (options.truncation && options.max_length > 0)
+      t.truncate(ids, static_cast<std::size_t>(options.max_length), !options.truncate_right,
+                 add_special_tokens);
+    t.post_process(ids, add_special_tokens);
+    longest = std::max(longest, ids.size());
+    rows.push_back(std::move(ids));
+  }
+  std::size_t length = longest;
+  if (options.padding == Padding::max_length)
+    length = std::max(longest, static_cast<std::size_t>(options.max_length));
+  for (std::size_t r = 0; r < rows.size(); ++r) {
+    if (rows[r].size() != length && (options.padding == Padding::none || rows[r].size() > length))
+      throw Error(ErrorCode::invalid_argument,
+                  "encode_batch: row " + std::to_string(r) + " has " +
+                      std::to_string(rows[r].size()) + " tokens but the batch is " +
+                      std::to_string(length) + " long and padding cannot equalise it");
+  }
+  if (options.padding == Padding::max_length &&
+      longest > static_cast<std::size_t>(options.max_length)) {
+    for (std::size_t r = 0; r < rows.size(); ++r) {
+      if (rows[r].size() != longest)
+        throw Error(
+            ErrorCode::invalid_argument,
+            "encode_batch: rows longer than max_length (truncation off) leave a ragged batch");
+    }
+  }
+  BatchEncoding out;
+  out.batch = static_cast<int64_t>(rows.size());
+  out.length = static_cast<int64_t>(length);
+  out.ids.assign(rows.size() * length, options.pad_token_id);
+  out.mask.assign(rows.size() * length, 0);
+  for (std::size_t r = 0; r < rows.size(); ++r) {
+    const std::size_t pad = length - rows[r].size();
+    const std::size_t offset = r * length + (options.pad_right ? 0 : pad);
+    for (std::size_t k = 0; k < rows[r].size(); ++k) {
+      out.ids[offset + k] = rows[r][k];
+      out.mask[offset + k] = 1;
+    }
+  }
+  return out;
+}
+
+}  // namespace tether::text

@@ -1,0 +1,97 @@
+// Byte-level BPE tokenizer loaded from a Hugging Face `tokenizer.json`, reproducing the Rust
+// `tokenizers` package id for id, plus transformers-style batch padding/truncation.
+#pragma once
+
+#include <cstdint>
+#include <memory>
+#include <optional>
+#include <string>
+#include <string_view>
+#include <vector>
+
+namespace tether::text {
+
+struct TokenizerImpl;
+struct BatchOptions;
+struct BatchEncoding;
+struct PretrainedTokenizer;
+
+class Tokenizer {
+ public:
+  // Errors name the file and the JSON field at fault; components Tether does not implement are
+  // rejected here with ErrorCode::unsupported rather than silently tokenizing differently.
+  static Tokenizer from_file(const std::string& tokenizer_json_path);
+  // A checkpoint directory loaded the way transformers 5.x does it; see load_pretrained_tokenizer.
+  static Tokenizer from_transformers_dir(const std::string& dir);
+  // `where` names the source in error messages (normally the file path).
+  static Tokenizer from_json_string(std::string_view json, const std::string& where);
+
+  // Throws ErrorCode::invalid_argument when `text` is not valid UTF-8. Applies the truncation and
+  // padding settings stored in the file, as `tokenizers.Tokenizer.encode` does.
+  std::vector<int32_t> encode(std::string_view text, bool add_special_tokens = true) const;
+  // Ids unknown to the vocabulary are skipped, as the Rust crate does.
+  std::string decode(const std::vector<int32_t>& ids, bool skip_special_tokens = false) const;
+
+  std::optional<int32_t> token_to_id(std::string_view token) const;
+  std::optional<std::string> id_to_token(int32_t id) const;
+  int32_t vocab_size() const;  // distinct token strings, model vocabulary plus added tokens
+  // How many ids the post-processor adds around a single sequence (e.g. 1 for a BOS template).
+  int num_special_tokens_to_add() const;
+
+ private:
+  explicit Tokenizer(std::shared_ptr<const TokenizerImpl> impl) : impl_(std::move(impl)) {}
+  std::shared_ptr<const TokenizerImpl> impl_;  // immutable after load; copies share it
+
+  friend PretrainedTokenizer load_pretrained_tokenizer(const std::string&);
+  friend BatchEncoding encode_batch(const Tokenizer&, const std::vector<std::string>&,
+                                    const BatchOptions&, bool);
+};
+
+enum class Padding { none, longest, max_length };
+
+struct BatchOptions {
+  Padding padding = Padding::longest;
+  int max_length = 0;      // 0: no limit (truncation off, and padding max_length is an error)
+  bool truncation = true;  // truncate each sequence, special tokens included, to max_length
+  bool truncate_right =
+      true;               // transformers truncation_side="right" (SmolVLM's config says "left")
+  bool pad_right = true;  // transformers padding_side="right"
+  int32_t pad_token_id = 0;
+};
+
+// Row-major [batch, length] ids and attention mask (1 = token, 0 = padding).
+struct BatchEncoding {
+  int64_t batch = 0, length = 0;
+  std::vector<int64_t> ids;
+  std::vector<uint8_t> mask;
+};
+
+// Same result as calling a transformers PreTrainedTokenizerFast with padding=..., max_length=...,
+// truncation=..., padding_side=...: the text's tokens are cut from the right so the sequence with
+// its post-processor tokens fits max_length, then rows are padded. The file's own truncation and
+// padding settings are ignored here, as transformers overrides them. Throws invalid_argument when
+// rows would be ragged (padding none or max_length without truncation, with unequal lengths).
+BatchEncoding encode_batch(const Tokenizer& tokenizer, const std::vector<std::string>& texts,
+                           const BatchOptions& options, bool add_special_tokens = true);
+
+// A checkpoint's tokenizer as transformers 5.x AutoTokenizer builds it from <dir>/tokenizer.json
+// and <dir>/tokenizer_config.json, which is not always what tokenizer.json alone describes:
+//  - tokenizer_class "GPT2Tokenizer" (SmolVLM, SmolLM2) rebuilds the pipeline: the file's
+//  normalizer
+//    and pre-tokenizer are dropped for ByteLevel(add_prefix_space from the config) — so no Digits
+//    split — and the BPE options reset; vocabulary, merges, added tokens and post-processor stay.
+//  - "PreTrainedTokenizerFast" / "TokenizersBackend" or no tokenizer_config.json: the file as is.
+//  - any other class: ErrorCode::unsupported (transformers would rebuild it in its own way).
+// Named special tokens of the config (bos/eos/unk/sep/pad/cls/mask) missing from the added tokens
+// are added as special tokens, as transformers does. Only the tokenizer_class route is followed:
+// the shortcut transformers takes for model types it maps to another class is not (SmolVLM's
+// "smolvlm" type is not mapped, so this is its real route).
+struct PretrainedTokenizer {
+  Tokenizer tokenizer;
+  std::string tokenizer_class;  // "" without tokenizer_config.json
+  BatchOptions defaults;        // padding/truncation side and pad id from the config; max_length 0
+  std::optional<int32_t> bos_token_id, eos_token_id, pad_token_id;
+};
+PretrainedTokenizer load_pretrained_tokenizer(const std::string& dir);
+
+}  // namespace tether::text
