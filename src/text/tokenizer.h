@@ -83,9 +83,10 @@ BatchEncoding encode_batch(const Tokenizer& tokenizer, const std::vector<std::st
 //  - "PreTrainedTokenizerFast" / "TokenizersBackend" or no tokenizer_config.json: the file as is.
 //  - any other class: ErrorCode::unsupported (transformers would rebuild it in its own way).
 // Named special tokens of the config (bos/eos/unk/sep/pad/cls/mask) missing from the added tokens
-// are added as special tokens, as transformers does. Only the tokenizer_class route is followed:
-// the shortcut transformers takes for model types it maps to another class is not (SmolVLM's
-// "smolvlm" type is not mapped, so this is its real route).
+// are added as special tokens, as transformers does; add_bos_token / add_eos_token are ignored, as
+// transformers drops them whenever tokenizer.json exists. Only the tokenizer_class route is
+// followed: the shortcut transformers takes for model types it maps to another class is not
+// (SmolVLM's "smolvlm" type is not mapped, so this is its real route).
 struct PretrainedTokenizer {
   Tokenizer tokenizer;
   std::string tokenizer_class;  // "" without tokenizer_config.json

@@ -150,7 +150,7 @@ TEST_P(FixtureParity, MatchesPythonTokenizers) {
 
 INSTANTIATE_TEST_SUITE_P(Tokenizers, FixtureParity,
                          ::testing::Values("smollm", "gpt2", "llama3", "qwen2", "misc", "fallback",
-                                           "gpt2_trunc", "smollm_gpt2cls"));
+                                           "gpt2_trunc", "smollm_gpt2cls", "gpt2_config_flags"));
 
 // Byte-level BPE without normalizer or stripping added tokens is lossless.
 TEST(Tokenizer, RoundTripDecode) {

@@ -445,6 +445,25 @@ def main():
     )
     write_jsonl(d / "expected.jsonl", rows)
 
+    # tokenizer_config.json asking for BOS/EOS: transformers drops those flags when tokenizer.json
+    # exists, but adds the named eos token, which the file lacks, as a new special token.
+    d = out / "gpt2_config_flags"
+    d.mkdir(exist_ok=True)
+    (d / "tokenizer.json").write_bytes((out / "gpt2" / "tokenizer.json").read_bytes())
+    config = {
+        "tokenizer_class": "PreTrainedTokenizerFast", "bos_token": "<|endoftext|>", "eos_token": "<|eot|>",
+        "add_bos_token": True, "add_eos_token": True, "padding_side": "left",
+    }
+    (d / "tokenizer_config.json").write_text(json.dumps(config, indent=2) + "\n", encoding="utf-8")
+    flags_tok = transformers.PreTrainedTokenizerFast.from_pretrained(str(d))
+    rows = expectations(
+        lambda t, sp: flags_tok(t, add_special_tokens=sp)["input_ids"],
+        lambda ids, skip: flags_tok.backend_tokenizer.decode(ids, skip_special_tokens=skip),
+        flags_tok.backend_tokenizer.get_vocab_size(with_added_tokens=True), 10,
+        {"class": type(flags_tok).__name__},
+    )
+    write_jsonl(d / "expected.jsonl", rows)
+
     # Batches through transformers, the way lerobot's tokenizer step calls it.
     rng = random.Random(91011)
     batch_rows = [{"meta": meta}]
