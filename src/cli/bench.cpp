@@ -110,7 +110,7 @@ int run_bench(const BenchArgs& a) {
 
 }  // namespace
 
-std::function<int()> add_bench(CLI::App& app) {
+Verb add_bench(CLI::App& app) {
   auto args = std::make_shared<BenchArgs>();
   CLI::App* sub = app.add_subcommand("bench", "Measure latency, stage breakdown, throughput and peak RSS");
   sub->add_option("checkpoint", args->checkpoint, "Checkpoint directory")->required();
@@ -120,7 +120,7 @@ std::function<int()> add_bench(CLI::App& app) {
   sub->add_flag("--json", args->json, "Print JSON");
   sub->add_option("--out", args->out, "Write the last action chunk(s) to this safetensors file ('actions')");
   args->observation.add_to(sub, /*required=*/false);
-  return [args] { return run_bench(*args); };
+  return {sub, [args] { return run_bench(*args); }};
 }
 
 }  // namespace tether::cli

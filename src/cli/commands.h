@@ -9,8 +9,13 @@ namespace tether::cli {
 // Exit codes shared by every verb.
 constexpr int kExitOk = 0, kExitCheckFailed = 1, kExitUsage = 2;
 
-// Adds the subcommand to `app`; the returned function runs it (called only when the subcommand was chosen).
-std::function<int()> add_predict(CLI::App& app);
-std::function<int()> add_bench(CLI::App& app);
+// A registered subcommand and what runs it once the command line has been parsed.
+struct Verb {
+  CLI::App* command;
+  std::function<int()> run;
+};
+
+Verb add_predict(CLI::App& app);
+Verb add_bench(CLI::App& app);
 
 }  // namespace tether::cli

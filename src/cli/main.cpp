@@ -9,10 +9,10 @@ int main(int argc, char** argv) {
   CLI::App app{"tether: deploy Vision-Language-Action robot policies"};
   app.require_subcommand(1);
   app.set_version_flag("--version", std::string("tether ") + TETHER_VERSION);
-  std::vector<std::pair<CLI::App*, std::function<int()>>> verbs;
-  auto add = [&](std::function<int()> run) { verbs.push_back({app.get_subcommands().back(), std::move(run)}); };
-  add(tether::cli::add_predict(app));
-  add(tether::cli::add_bench(app));
+  const std::vector<tether::cli::Verb> verbs = {
+      tether::cli::add_predict(app),
+      tether::cli::add_bench(app),
+  };
   try {
     app.parse(argc, argv);
   } catch (const CLI::ParseError& e) {
@@ -20,8 +20,8 @@ int main(int argc, char** argv) {
     return rc == 0 ? 0 : tether::cli::kExitUsage;
   }
   try {
-    for (auto& [sub, run] : verbs)
-      if (sub->parsed()) return run();
+    for (const auto& verb : verbs)
+      if (verb.command->parsed()) return verb.run();
   } catch (const tether::Error& e) {
     std::cerr << "error: " << e.what() << "\n";
     return e.code() == tether::ErrorCode::internal ? tether::cli::kExitCheckFailed : tether::cli::kExitUsage;

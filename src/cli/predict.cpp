@@ -67,13 +67,13 @@ int run_predict(const PredictArgs& a) {
 
 }  // namespace
 
-std::function<int()> add_predict(CLI::App& app) {
+Verb add_predict(CLI::App& app) {
   auto args = std::make_shared<PredictArgs>();
   CLI::App* sub = app.add_subcommand("predict", "Run one observation through a checkpoint and print the action chunk");
   sub->add_option("checkpoint", args->checkpoint, "Checkpoint directory (LeRobot layout)")->required();
   args->observation.add_to(sub, /*required=*/true);
   sub->add_flag("--json", args->json, "Print JSON instead of a table");
-  return [args] { return run_predict(*args); };
+  return {sub, [args] { return run_predict(*args); }};
 }
 
 }  // namespace tether::cli

@@ -47,9 +47,10 @@ Normalizer Normalizer::load(const std::string& dir, const std::string& pipeline_
   Normalizer n;
   const fs::path path = fs::path(dir) / pipeline_json;
   Json features = Json::object(), norm_map = policy_config.value("normalization_mapping", Json::object());
-  for (const char* group : {"input_features", "output_features"})
-    for (auto it = policy_config.value(group, Json::object()).begin(); it != policy_config.value(group, Json::object()).end(); ++it)
-      features[it.key()] = *it;
+  for (const char* group : {"input_features", "output_features"}) {
+    const Json part = policy_config.value(group, Json::object());
+    for (auto it = part.begin(); it != part.end(); ++it) features[it.key()] = *it;
+  }
   std::string state_file;
   std::string where = (fs::path(dir) / "config.json").string();
   if (fs::exists(path)) {
