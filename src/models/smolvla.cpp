@@ -96,19 +96,6 @@ TokenizerSettings read_tokenizer_settings(const fs::path& dir, const Json& confi
   return s;
 }
 
-int32_t read_pad_token_id(const fs::path& vlm_dir, const text::Tokenizer& tok) {
-  for (const char* file : {"tokenizer_config.json", "special_tokens_map.json"}) {
-    const fs::path p = vlm_dir / file;
-    if (!fs::exists(p)) continue;
-    const Json j = read_json_file(p.string());
-    auto it = j.find("pad_token");
-    if (it == j.end() || it->is_null()) continue;
-    const std::string content = it->is_string() ? it->get<std::string>() : it->value("content", "");
-    if (auto id = tok.token_to_id(content)) return *id;
-  }
-  return -1;  // no pad token: only an error when padding is actually needed
-}
-
 class SmolVLA final : public Model {
  public:
   SmolVLA(const fs::path& dir, const Json& config);
@@ -123,8 +110,7 @@ class SmolVLA final : public Model {
 
   ModelSpec spec_;
   TokenizerSettings tok_settings_;
-  std::optional<text::Tokenizer> tokenizer_;  // set in the constructor (no empty state)
-  int32_t pad_token_id_ = -1;
+  std::optional<text::PretrainedTokenizer> tokenizer_;  // set in the constructor (no empty state)
   int64_t empty_cameras_ = 0, prefix_length_ = -1, self_attn_every_ = 2;
   bool cross_mode_ = true;
   double min_period_ = 4e-3, max_period_ = 4.0;
@@ -206,8 +192,8 @@ SmolVLA::SmolVLA(const fs::path& dir, const Json& config) {
   if (text_cfg_.rms_norm_eps == 1e-6f && !vlm_cfg["text_config"].contains("rms_norm_eps"))
     text_cfg_.rms_norm_eps = 1e-5f;  // SmolVLMConfig's default text config overrides Llama's eps
   const int64_t scale_factor = json_get_or<int64_t>(vlm_cfg, "scale_factor", 2, vlm_where);
-  tokenizer_.emplace(text::Tokenizer::from_file((vlm_dir / "tokenizer.json").string()));
-  pad_token_id_ = read_pad_token_id(vlm_dir, *tokenizer_);
+  // Loaded as transformers' AutoTokenizer builds it (tokenizer class overrides, truncation side, pad token).
+  tokenizer_.emplace(text::load_pretrained_tokenizer(vlm_dir.string()));
 
   auto resize = config.find("resize_imgs_with_padding");
   if (resize != config.end() && !resize->is_null()) {
@@ -357,13 +343,12 @@ void SmolVLA::build_prefix(const std::vector<ModelInput>& batch, ModelOutput& ou
   // Language tokens.
   std::vector<std::string> texts;
   for (const auto& item : batch) texts.push_back(item.instruction + (tok_settings_.append_newline ? "\n" : ""));
-  text::BatchOptions opts;
+  text::BatchOptions opts = tokenizer_->defaults;
   opts.padding = tok_settings_.padding == "max_length" ? text::Padding::max_length : text::Padding::longest;
   opts.max_length = tok_settings_.max_length;
   opts.truncation = tok_settings_.truncation;
   opts.pad_right = tok_settings_.pad_right;
-  opts.pad_token_id = pad_token_id_ < 0 ? 0 : pad_token_id_;
-  const text::BatchEncoding enc = text::encode_batch(*tokenizer_, texts, opts);
+  const text::BatchEncoding enc = text::encode_batch(tokenizer_->tokenizer, texts, opts);
   const int64_t L = enc.length;
   out.timings.preprocess_ms = ms_since(t0);
 

@@ -36,10 +36,17 @@ double max_abs_diff(const std::vector<float>& a, const std::vector<float>& b) {
   return m;
 }
 
-// Tolerances: fp32 end to end. Intermediates deep in the network accumulate GEMM reordering noise, so they get a
-// looser bound than the target the issue sets for the action chunk.
-double tolerance(const std::string& name) {
+// Tolerances, fp32 end to end: preprocessing is exact up to 1e-6; the normalised action chunk (the model's
+// output) must be within 1e-5; robot-unit actions are that chunk scaled by the stats, so their bound scales with
+// their magnitude (1e-5 relative: a float32 ulp at 100 is already 7.6e-6). Intermediates deep in the network
+// carry GEMM summation-order noise and get 1e-4.
+double tolerance(const std::string& name, const std::vector<float>& ref) {
   if (name.rfind("pre.", 0) == 0) return 1e-6;
+  if (name == "out.actions") {
+    double scale = 1.0;
+    for (float v : ref) scale = std::max(scale, double(std::fabs(v)));
+    return 1e-5 * scale;
+  }
   if (name.rfind("out.", 0) == 0) return 1e-5;
   return 1e-4;
 }
@@ -87,16 +94,17 @@ TEST_P(SmolVLAParity, MatchesUpstream) {
   for (const auto& item : pred.items) actions.values.insert(actions.values.end(), item.actions.begin(), item.actions.end());
   captured["out.actions"] = actions;
 
-  std::printf("  %-32s %-16s %12s\n", ("[" + GetParam() + "]").c_str(), "shape", "max |diff|");
+  std::printf("  %-40s %-16s %12s\n", ("[" + GetParam() + "]").c_str(), "shape", "max |diff|");
   int compared = 0;
   for (const std::string& name : oracle.names()) {
     auto it = captured.find(name);
     if (it == captured.end()) continue;
     const Tensor ref = oracle.get(name);
     ASSERT_EQ(it->second.shape, ref.shape) << name;
-    const double diff = max_abs_diff(it->second.values, ref.to_f32());
-    std::printf("  %-32s %-16s %12.3e\n", name.c_str(), shape_str(ref.shape).c_str(), diff);
-    EXPECT_LE(diff, tolerance(name)) << name;
+    const std::vector<float> want = ref.to_f32();
+    const double diff = max_abs_diff(it->second.values, want);
+    std::printf("  %-40s %-16s %12.3e\n", name.c_str(), shape_str(ref.shape).c_str(), diff);
+    EXPECT_LE(diff, tolerance(name, want)) << name;
     ++compared;
   }
   EXPECT_GE(compared, 10) << "too few intermediates were compared";

@@ -1,12 +1,12 @@
 // Masked grouped-query attention: per (batch, head, block of queries) one BLAS product for the scores,
 // a scale/mask/softmax pass, and one BLAS product with V, in the order lerobot's eager attention uses.
-#include <cblas.h>
 
 #include <algorithm>
 #include <limits>
 #include <string>
 #include <vector>
 
+#include "backend/cpu/gemm.h"
 #include "backend/cpu/kernels.h"
 #include "core/error.h"
 
@@ -61,8 +61,8 @@ void attention(const float* q, int64_t q_stride, const float* k, const float* v,
     const float* qp = q + (b * len_q + q0) * q_stride + h * head_dim;
     const float* kp = k + b * len_k * kv_stride + (h / groups) * head_dim;
     const float* vp = v + b * len_k * kv_stride + (h / groups) * head_dim;
-    cblas_sgemm(CblasRowMajor, CblasNoTrans, CblasTrans, rows, int(len_k), int(head_dim), 1.0f, qp,
-                int(q_stride), kp, int(kv_stride), 0.0f, s, int(len_k));
+    // Inside the parallel region the GEMM library runs single-threaded (nested parallelism is off).
+    gemm(false, true, rows, len_k, head_dim, 1.0f, qp, q_stride, kp, kv_stride, 0.0f, s, len_k);
     for (int r = 0; r < rows; ++r) {
       float* sr = s + r * len_k;
       // The scale multiplies the finished dot products (not q), as upstream does.
@@ -76,8 +76,8 @@ void attention(const float* q, int64_t q_stride, const float* k, const float* v,
       }
       softmax_row(sr, len_k);
     }
-    cblas_sgemm(CblasRowMajor, CblasNoTrans, CblasNoTrans, rows, int(head_dim), int(len_k), 1.0f, s, int(len_k),
-                vp, int(kv_stride), 0.0f, out + (b * len_q + q0) * out_stride + h * head_dim, int(out_stride));
+    gemm(false, false, rows, head_dim, len_k, 1.0f, s, len_k, vp, kv_stride, 0.0f,
+         out + (b * len_q + q0) * out_stride + h * head_dim, out_stride);
   }
 }
 

@@ -1,8 +1,10 @@
-// GEMM through OpenBLAS's CBLAS (OpenMP build, so it shares the thread pool with the kernels).
-// bench/GEMM.md records why OpenBLAS rather than oneDNN.
+// GEMM through oneDNN's sgemm (its OpenMP build, so it shares the thread pool with the kernels).
+// bench/GEMM.md records why oneDNN: about 2x OpenBLAS on SmolVLA's shapes on this machine class, because
+// Debian's OpenBLAS 0.3.21 does not recognise newer AVX-512 CPUs and falls back to AVX2 kernels.
 #include "backend/cpu/gemm.h"
 
-#include <cblas.h>
+#include <dnnl.h>
+#include <omp.h>
 
 #include <climits>
 #include <cstring>
@@ -13,13 +15,11 @@
 namespace tether::cpu {
 namespace {
 
-// Debian's OpenBLAS uses 32-bit BLAS integers; anything larger would silently wrap.
-blasint to_blas_int(int64_t v, const char* what) {
+void check_dim(int64_t v, const char* what) {
   if (v < 0 || v > INT_MAX) {
     throw Error(ErrorCode::invalid_argument, std::string("gemm: ") + what + " = " + std::to_string(v) +
-                                                 " is outside the BLAS integer range");
+                                                 " is outside the supported range");
   }
-  return static_cast<blasint>(v);
 }
 
 void check_ld(int64_t ld, int64_t cols, const char* what) {
@@ -33,17 +33,18 @@ void check_ld(int64_t ld, int64_t cols, const char* what) {
 
 void gemm(bool trans_a, bool trans_b, int64_t m, int64_t n, int64_t k, float alpha, const float* a, int64_t lda,
           const float* b, int64_t ldb, float beta, float* c, int64_t ldc) {
-  to_blas_int(m, "m");
-  to_blas_int(n, "n");
-  to_blas_int(k, "k");
+  check_dim(m, "m");
+  check_dim(n, "n");
+  check_dim(k, "k");
   if (m == 0 || n == 0) return;
   // Row-major: op(A) is m x k, stored as m rows of k (or, transposed, k rows of m).
   check_ld(lda, trans_a ? m : k, "lda");
   check_ld(ldb, trans_b ? k : n, "ldb");
   check_ld(ldc, n, "ldc");
-  cblas_sgemm(CblasRowMajor, trans_a ? CblasTrans : CblasNoTrans, trans_b ? CblasTrans : CblasNoTrans,
-              static_cast<blasint>(m), static_cast<blasint>(n), static_cast<blasint>(k), alpha, a,
-              to_blas_int(lda, "lda"), b, to_blas_int(ldb, "ldb"), beta, c, to_blas_int(ldc, "ldc"));
+  const dnnl_status_t st =
+      dnnl_sgemm(trans_a ? 'T' : 'N', trans_b ? 'T' : 'N', m, n, k, alpha, a, lda, b, ldb, beta, c, ldc);
+  if (st != dnnl_success)
+    throw Error(ErrorCode::internal, "gemm: oneDNN sgemm failed with status " + std::to_string(int(st)));
 }
 
 void linear(const float* x, int64_t m, int64_t k, const float* weight, const float* bias, int64_t n, float* y,
@@ -68,15 +69,14 @@ void linear(const float* x, int64_t m, int64_t k, const float* weight, const flo
 }
 
 const char* blas_name() {
-  // Computed once: the core name is only known after OpenBLAS picked its kernels at load time.
   static const std::string name = [] {
-    std::string config = openblas_get_config();
-    std::string core = openblas_get_corename();
-    return config + " (kernels: " + core + ", OpenMP)";
+    const dnnl_version_t* v = dnnl_version();
+    return "oneDNN " + std::to_string(v->major) + "." + std::to_string(v->minor) + "." + std::to_string(v->patch) +
+           " (OpenMP)";
   }();
   return name.c_str();
 }
 
-int blas_threads() { return openblas_get_num_threads(); }
+int blas_threads() { return omp_get_max_threads(); }
 
 }  // namespace tether::cpu
