@@ -145,9 +145,22 @@ SafeTensorsFile SafeTensorsFile::open(const std::string& path) {
   SafeTensorsFile f;
   f.path_ = path;
   f.base_ = static_cast<const uint8_t*>(mapping->addr);
+  f.size_ = mapping->size;
   f.header_ = parse_safetensors_header(f.base_, mapping->size, path);
   f.mapping_ = std::shared_ptr<const void>(mapping, mapping->addr);
   return f;
+}
+
+void SafeTensorsFile::drop_resident_pages() const {
+  if (base_ && size_) madvise(const_cast<uint8_t*>(base_), size_, MADV_DONTNEED);
+}
+
+void SafeTensorsFile::drop_resident_pages(const std::string& name) const {
+  const TensorEntry& e = entry(name);
+  static const uintptr_t page = uintptr_t(sysconf(_SC_PAGESIZE));
+  const uintptr_t begin = reinterpret_cast<uintptr_t>(base_ + header_.data_offset + e.begin) & ~(page - 1);
+  const uintptr_t end = reinterpret_cast<uintptr_t>(base_ + header_.data_offset + e.end);
+  if (end > begin) madvise(reinterpret_cast<void*>(begin), end - begin, MADV_DONTNEED);
 }
 
 std::vector<std::string> SafeTensorsFile::names() const {

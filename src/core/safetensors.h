@@ -42,10 +42,17 @@ class SafeTensorsFile {
   // Zero-copy view; the returned tensor keeps the mapping alive.
   Tensor get(const std::string& name) const;
 
+  // Tells the kernel the mapped pages are not needed now: they leave this process's resident set and are
+  // read back from the page cache on the next access. For after load, once the weights were copied out.
+  void drop_resident_pages() const;
+  // The same for the pages holding one tensor (a neighbour sharing an edge page just faults it back in).
+  void drop_resident_pages(const std::string& name) const;
+
  private:
   std::string path_;
   std::shared_ptr<const void> mapping_;
   const uint8_t* base_ = nullptr;
+  std::size_t size_ = 0;
   SafeTensorsHeader header_;
 };
 

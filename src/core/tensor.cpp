@@ -34,13 +34,21 @@ T load(const void* base, int64_t i) {
 }  // namespace
 
 std::vector<float> Tensor::to_f32() const {
-  const int64_t n = numel();
-  std::vector<float> out(n);
+  std::vector<float> out(static_cast<std::size_t>(numel()));
+  copy_f32(0, numel(), out.data());
+  return out;
+}
+
+void Tensor::copy_f32(int64_t offset, int64_t count, float* out) const {
+  if (offset < 0 || count < 0 || offset + count > numel())
+    throw Error(ErrorCode::internal, "Tensor::copy_f32: range outside a tensor of shape " + shape_str(shape));
   auto convert = [&](auto fn) {
-    for (int64_t i = 0; i < n; ++i) out[i] = fn(i);
+    for (int64_t i = 0; i < count; ++i) out[i] = fn(offset + i);
   };
   switch (dtype) {
-    case DType::f32: if (n) std::memcpy(out.data(), data, std::size_t(n) * 4); break;
+    case DType::f32:
+      if (count) std::memcpy(out, static_cast<const char*>(data) + offset * 4, std::size_t(count) * 4);
+      break;
     case DType::f64: convert([&](int64_t i) { return float(load<double>(data, i)); }); break;
     case DType::bf16: convert([&](int64_t i) { return bf16_to_f32(load<uint16_t>(data, i)); }); break;
     case DType::f16: convert([&](int64_t i) { return f16_to_f32(load<uint16_t>(data, i)); }); break;
@@ -51,7 +59,6 @@ std::vector<float> Tensor::to_f32() const {
     case DType::u8:
     case DType::boolean: convert([&](int64_t i) { return float(load<uint8_t>(data, i)); }); break;
   }
-  return out;
 }
 
 bool Tensor::aligned() const { return reinterpret_cast<uintptr_t>(data) % dtype_size(dtype) == 0; }

@@ -33,6 +33,8 @@ struct Tensor {
 
   // Converts any float or integer dtype to float32 (copy).
   std::vector<float> to_f32() const;
+  // Converts elements [offset, offset + count) to float32 into `out` (e.g. one row of an embedding table).
+  void copy_f32(int64_t offset, int64_t count, float* out) const;
   // Float32 data, zero-copy when already aligned f32; otherwise converted into `scratch`.
   const float* f32_data(std::vector<float>& scratch) const;
 

@@ -2,7 +2,6 @@
 
 #include "backend/cpu/gemm.h"
 #include "backend/cpu/kernels.h"
-#include "models/siglip.h"
 
 namespace tether::models {
 
@@ -39,35 +38,27 @@ void LlamaLayer::load(Weights& w, const std::string& p, const LlamaConfig& cfg, 
   input_norm = w.f32(p + "input_layernorm.weight", {hidden});
   post_norm = w.f32(p + "post_attention_layernorm.weight", {hidden});
 
-  const float* q = w.f32(p + "self_attn.q_proj.weight", {q_dim, hidden});
-  const float* k = w.f32(p + "self_attn.k_proj.weight", {kv_dim, kv_in});
-  const float* v = w.f32(p + "self_attn.v_proj.weight", {kv_dim, kv_in});
+  const std::string q = p + "self_attn.q_proj.", k = p + "self_attn.k_proj.", v = p + "self_attn.v_proj.";
   if (cross) {
-    qkv_w = stack_rows({{q, q_dim}}, hidden);
-    kv_w = stack_rows({{k, kv_dim}, {v, kv_dim}}, kv_in);
+    qkv_w = w.stacked({{q + "weight", {q_dim, hidden}}});
+    kv_w = w.stacked({{k + "weight", {kv_dim, kv_in}}, {v + "weight", {kv_dim, kv_in}}});
   } else {
-    qkv_w = stack_rows({{q, q_dim}, {k, kv_dim}, {v, kv_dim}}, hidden);
+    qkv_w = w.stacked({{q + "weight", {q_dim, hidden}}, {k + "weight", {kv_dim, kv_in}}, {v + "weight", {kv_dim, kv_in}}});
   }
   if (cfg.attention_bias) {
-    const float* qb = w.f32(p + "self_attn.q_proj.bias", {q_dim});
-    const float* kb = w.f32(p + "self_attn.k_proj.bias", {kv_dim});
-    const float* vb = w.f32(p + "self_attn.v_proj.bias", {kv_dim});
     if (cross) {
-      qkv_b.assign(qb, qb + q_dim);
-      kv_b = stack_rows({{kb, kv_dim}, {vb, kv_dim}}, 1);
+      qkv_b = w.stacked({{q + "bias", {q_dim}}});
+      kv_b = w.stacked({{k + "bias", {kv_dim}}, {v + "bias", {kv_dim}}});
     } else {
-      qkv_b = stack_rows({{qb, q_dim}, {kb, kv_dim}, {vb, kv_dim}}, 1);
+      qkv_b = w.stacked({{q + "bias", {q_dim}}, {k + "bias", {kv_dim}}, {v + "bias", {kv_dim}}});
     }
   }
   o_w = w.f32(p + "self_attn.o_proj.weight", {hidden, q_dim});
   o_b = cfg.attention_bias ? w.f32(p + "self_attn.o_proj.bias", {hidden}) : nullptr;
-  gate_up_w = stack_rows({{w.f32(p + "mlp.gate_proj.weight", {intermediate, hidden}), intermediate},
-                          {w.f32(p + "mlp.up_proj.weight", {intermediate, hidden}), intermediate}},
-                         hidden);
+  gate_up_w = w.stacked({{p + "mlp.gate_proj.weight", {intermediate, hidden}},
+                         {p + "mlp.up_proj.weight", {intermediate, hidden}}});
   if (cfg.mlp_bias)
-    gate_up_b = stack_rows({{w.f32(p + "mlp.gate_proj.bias", {intermediate}), intermediate},
-                            {w.f32(p + "mlp.up_proj.bias", {intermediate}), intermediate}},
-                           1);
+    gate_up_b = w.stacked({{p + "mlp.gate_proj.bias", {intermediate}}, {p + "mlp.up_proj.bias", {intermediate}}});
   down_w = w.f32(p + "mlp.down_proj.weight", {hidden, intermediate});
   down_b = cfg.mlp_bias ? w.f32(p + "mlp.down_proj.bias", {hidden}) : nullptr;
 }

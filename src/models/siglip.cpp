@@ -10,18 +10,6 @@ namespace tether::models {
 
 using namespace tether::cpu;
 
-std::vector<float> stack_rows(const std::vector<std::pair<const float*, int64_t>>& parts, int64_t k) {
-  int64_t rows = 0;
-  for (const auto& p : parts) rows += p.second;
-  std::vector<float> out(std::size_t(rows * k));
-  float* dst = out.data();
-  for (const auto& [src, n] : parts) {
-    std::memcpy(dst, src, std::size_t(n * k) * sizeof(float));
-    dst += n * k;
-  }
-  return out;
-}
-
 VisionConfig VisionConfig::from_json(const Json& j, const std::string& where) {
   // Defaults are those of transformers' SmolVLMVisionConfig, which save_pretrained may omit.
   VisionConfig c;
@@ -56,16 +44,13 @@ void VisionTower::load(Weights& w, const std::string& prefix, const VisionConfig
     Layer& L = layers_[i];
     L.ln1_w = w.f32(lp + "layer_norm1.weight", {d});
     L.ln1_b = w.f32(lp + "layer_norm1.bias", {d});
-    L.qkv_w = stack_rows({{w.f32(lp + "self_attn.q_proj.weight", {d, d}), d},
-                          {w.f32(lp + "self_attn.k_proj.weight", {d, d}), d},
-                          {w.f32(lp + "self_attn.v_proj.weight", {d, d}), d}},
-                         d);
-    // Biases stacked the same way; stored at the end of the weight buffer to keep one allocation.
-    std::vector<float> bias = stack_rows({{w.f32(lp + "self_attn.q_proj.bias", {d}), 1},
-                                          {w.f32(lp + "self_attn.k_proj.bias", {d}), 1},
-                                          {w.f32(lp + "self_attn.v_proj.bias", {d}), 1}},
-                                         d);
-    L.qkv_w.insert(L.qkv_w.end(), bias.begin(), bias.end());
+    // q, k, v weights then their biases in one buffer: one GEMM computes all three projections.
+    L.qkv_w = w.stacked({{lp + "self_attn.q_proj.weight", {d, d}},
+                         {lp + "self_attn.k_proj.weight", {d, d}},
+                         {lp + "self_attn.v_proj.weight", {d, d}},
+                         {lp + "self_attn.q_proj.bias", {d}},
+                         {lp + "self_attn.k_proj.bias", {d}},
+                         {lp + "self_attn.v_proj.bias", {d}}});
     L.qkv_b = L.qkv_w.data() + 3 * d * d;
     L.o_w = w.f32(lp + "self_attn.out_proj.weight", {d, d});
     L.o_b = w.f32(lp + "self_attn.out_proj.bias", {d});

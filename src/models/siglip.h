@@ -58,7 +58,4 @@ class PixelShuffleConnector {
   std::vector<float> shuffled_;
 };
 
-// Helper shared by the blocks: stack row-blocks [n_i, k] of several matrices into one [sum n_i, k] matrix.
-std::vector<float> stack_rows(const std::vector<std::pair<const float*, int64_t>>& parts, int64_t k);
-
 }  // namespace tether::models

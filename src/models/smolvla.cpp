@@ -119,7 +119,7 @@ class SmolVLA final : public Model {
   LlamaConfig text_cfg_;
   VisionTower vision_;
   PixelShuffleConnector connector_;
-  const float* embed_tokens_ = nullptr;
+  Tensor embed_tokens_;  // stored dtype, rows converted on lookup (only the used rows are ever read)
   std::vector<LlamaLayer> vlm_;
   std::vector<LlamaLayer> expert_;
   std::vector<int> expert_at_;  // VLM layer index -> expert layer index or -1
@@ -219,7 +219,7 @@ SmolVLA::SmolVLA(const fs::path& dir, const Json& config) {
   const int64_t D = text_cfg_.hidden, E = expert_hidden_, A = spec_.max_action_dim;
   vision_.load(w, vlm_prefix + "vision_model.", vision_cfg);
   connector_.load(w, vlm_prefix + "connector.", vision_cfg.hidden, scale_factor, D);
-  embed_tokens_ = w.f32(vlm_prefix + "text_model.embed_tokens.weight", {text_cfg_.vocab, D});
+  embed_tokens_ = w.raw(vlm_prefix + "text_model.embed_tokens.weight", {text_cfg_.vocab, D});
   vlm_norm_ = w.f32(vlm_prefix + "text_model.norm.weight", {D});
   vlm_.resize(std::size_t(vlm_layers));
   for (int64_t i = 0; i < vlm_layers; ++i)
@@ -256,6 +256,7 @@ SmolVLA::SmolVLA(const fs::path& dir, const Json& config) {
   time_out_w_ = w.f32("model.action_time_mlp_out.weight", {E, E});
   time_out_b_ = w.f32("model.action_time_mlp_out.bias", {E});
   spec_.weights_dtype = w.stored_dtype();
+  w.finish_loading();
   if (spec_.image_height == 0) spec_.image_height = spec_.image_width = vision_cfg.image_size;
 }
 
@@ -399,7 +400,8 @@ void SmolVLA::build_prefix(const std::vector<ModelInput>& batch, ModelOutput& ou
       const int64_t id = enc.ids[b * L + j];
       if (id < 0 || id >= text_cfg_.vocab)
         throw Error(ErrorCode::internal, "token id " + std::to_string(id) + " outside the embedding table");
-      for (int64_t i = 0; i < D; ++i) x[t * D + i] = embed_tokens_[id * D + i] * img_scale;
+      embed_tokens_.copy_f32(id * D, D, x + t * D);
+      for (int64_t i = 0; i < D; ++i) x[t * D + i] *= img_scale;
       pad[t] = enc.mask[b * L + j];
     }
     std::fill(state.begin(), state.end(), 0.f);

@@ -23,13 +23,27 @@ class Weights {
   // Like f32() but returns null when the tensor is absent (for optional biases).
   const float* f32_optional(const std::string& name, const Shape& shape);
 
+  // Several checked tensors converted straight into one float32 buffer, one after another (fused q/k/v or
+  // gate/up weights), without an intermediate copy of each.
+  std::vector<float> stacked(const std::vector<std::pair<std::string, Shape>>& parts);
+
+  // Checked view in the stored dtype, for tables read a row at a time (token embeddings).
+  Tensor raw(const std::string& name, const Shape& shape);
+
+  // After load: when no float32 view points into the file, its pages leave the resident set (the model only
+  // reads its own copies and row lookups, which fault pages back in on demand).
+  void finish_loading();
+
   // Dtype of the checkpoint's floating-point weights ("F32", "BF16", ...) as found at load time.
   std::string stored_dtype() const { return stored_dtype_; }
 
  private:
+  const TensorEntry& checked(const std::string& name, const Shape& shape);
+
   SafeTensorsFile file_;
   std::deque<std::vector<float>> widened_;  // owned float32 copies of bf16/f16 tensors
   std::string stored_dtype_;
+  bool in_place_ = false;  // some f32 view points into the mapping
 };
 
 }  // namespace tether::models
