@@ -16,6 +16,9 @@
 
 namespace tether::text {
 
+// Tokenizer files are read unordered: their key order carries no meaning and their vocabularies are large.
+using Json = JsonMap;
+
 struct StringHash {
   using is_transparent = void;
   std::size_t operator()(std::string_view s) const { return std::hash<std::string_view>{}(s); }

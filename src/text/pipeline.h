@@ -14,6 +14,8 @@
 
 namespace tether::text {
 
+using Json = JsonMap;  // see bpe.h
+
 class Normalizer {
  public:
   virtual ~Normalizer() = default;

@@ -213,7 +213,7 @@ std::shared_ptr<TokenizerImpl> build(const Json& root, const std::string& where,
 }  // namespace
 
 Tokenizer Tokenizer::from_file(const std::string& path) {
-  return Tokenizer(build(read_json_file(path), path));
+  return Tokenizer(build(read_json_file<Json>(path), path));
 }
 
 Tokenizer Tokenizer::from_json_string(std::string_view json, const std::string& where) {
@@ -257,11 +257,11 @@ std::string side(const Json& config, const char* key, const std::string& where) 
 PretrainedTokenizer load_pretrained_tokenizer(const std::string& dir) {
   const std::string json_path = dir + "/tokenizer.json";
   const std::string config_path = dir + "/tokenizer_config.json";
-  const Json root = read_json_file(json_path);
+  const Json root = read_json_file<Json>(json_path);
   Json config = Json::object();
   {
     std::ifstream probe(config_path);
-    if (probe) config = read_json_file(config_path);
+    if (probe) config = read_json_file<Json>(config_path);
   }
   if (!config.is_object())
     throw Error(ErrorCode::format, config_path + ": top level is not an object");
