@@ -8,6 +8,9 @@
 int main(int argc, char** argv) {
   CLI::App app{"tether: deploy Vision-Language-Action robot policies"};
   app.require_subcommand(1);
+  // Usage errors are one line, like every other error of the binary.
+  app.failure_message(
+      [](const CLI::App*, const CLI::Error& e) { return "error: " + std::string(e.what()) + " (see --help)\n"; });
   app.set_version_flag("--version", std::string("tether ") + TETHER_VERSION);
   const std::vector<tether::cli::Verb> verbs = {
       tether::cli::add_predict(app),

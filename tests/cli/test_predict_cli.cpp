@@ -1,0 +1,131 @@
+// `tether predict` end to end through the binary: output, reproducibility and every user error's exit code.
+#include <gtest/gtest.h>
+#include <sys/wait.h>
+#include <unistd.h>
+
+#include <array>
+#include <cstdio>
+#include <filesystem>
+#include <fstream>
+
+#include "core/json_util.h"
+#include "core/safetensors.h"
+
+using namespace tether;
+namespace fs = std::filesystem;
+
+namespace {
+
+struct CliRun {
+  int code = -1;
+  std::string out, err;
+};
+
+// Runs the binary with `args` (already shell-quoted), capturing stdout and stderr separately.
+CliRun run_tether(const std::string& args) {
+  const fs::path err_file = fs::temp_directory_path() / ("tether_cli_err_" + std::to_string(::getpid()));
+  const std::string cmd = std::string(TETHER_BINARY) + " " + args + " 2>" + err_file.string();
+  CliRun r;
+  FILE* pipe = popen(cmd.c_str(), "r");
+  std::array<char, 4096> buf{};
+  std::size_t n;
+  while ((n = fread(buf.data(), 1, buf.size(), pipe)) > 0) r.out.append(buf.data(), n);
+  const int status = pclose(pipe);
+  r.code = WIFEXITED(status) ? WEXITSTATUS(status) : -1;
+  std::ifstream in(err_file);
+  r.err.assign(std::istreambuf_iterator<char>(in), {});
+  return r;
+}
+
+const std::string kDemo = std::string(TETHER_SOURCE_DIR) + "/models/demo/smolvla-demo";
+const std::string kImage = std::string(TETHER_SOURCE_DIR) + "/models/demo/sample.png";
+const std::string kGood = kDemo + " --image front=" + kImage + " --state 0,90,90,45,0,20 --instruction 'pick up the cube'";
+
+int lines(const std::string& s) { return int(std::count(s.begin(), s.end(), '\n')); }
+
+}  // namespace
+
+TEST(PredictCli, PrintsChunkAndStageLatencies) {
+  const CliRun r = run_tether("predict " + kGood + " --seed 3 --json");
+  ASSERT_EQ(r.code, 0) << r.err;
+  const Json j = Json::parse(r.out);
+  EXPECT_EQ(j["num_actions"], 50);
+  EXPECT_EQ(j["action_dim"], 6);
+  ASSERT_EQ(j["actions"].size(), 50u);
+  EXPECT_EQ(j["actions"][0].size(), 6u);
+  for (const char* stage : {"load", "preprocess", "vision", "prefix", "denoise", "postprocess", "total"})
+    EXPECT_TRUE(j["latency_ms"].contains(stage)) << stage;
+
+  const CliRun table = run_tether("predict " + kGood + " --seed 3");
+  ASSERT_EQ(table.code, 0) << table.err;
+  EXPECT_NE(table.out.find("action chunk: 50 x 6"), std::string::npos);
+  EXPECT_NE(table.out.find("latency (ms):"), std::string::npos);
+}
+
+TEST(PredictCli, SeedMakesRunsReproducible) {
+  const Json a = Json::parse(run_tether("predict " + kGood + " --seed 11 --json").out);
+  const Json b = Json::parse(run_tether("predict " + kGood + " --seed 11 --json").out);
+  const Json c = Json::parse(run_tether("predict " + kGood + " --seed 12 --json").out);
+  EXPECT_EQ(a["actions"], b["actions"]);
+  EXPECT_NE(a["actions"], c["actions"]);
+}
+
+TEST(PredictCli, ExplicitNoiseFile) {
+  const fs::path noise = fs::temp_directory_path() / ("tether_noise_" + std::to_string(::getpid()) + ".safetensors");
+  std::vector<float> zeros(50 * 32, 0.0f);
+  write_safetensors(noise.string(), {{"noise", Tensor::from_f32({1, 50, 32}, zeros)}});
+  const CliRun r = run_tether("predict " + kGood + " --noise " + noise.string() + " --json");
+  ASSERT_EQ(r.code, 0) << r.err;
+  // The seed is ignored when noise is given: two seeds, same noise, same actions.
+  const CliRun r2 = run_tether("predict " + kGood + " --noise " + noise.string() + " --seed 99 --json");
+  EXPECT_EQ(Json::parse(r.out)["actions"], Json::parse(r2.out)["actions"]);
+  std::vector<float> wrong(10, 0.0f);
+  write_safetensors(noise.string(), {{"noise", Tensor::from_f32({10}, wrong)}});
+  const CliRun bad = run_tether("predict " + kGood + " --noise " + noise.string());
+  EXPECT_EQ(bad.code, 2);
+  EXPECT_NE(bad.err.find("noise"), std::string::npos) << bad.err;
+}
+
+TEST(PredictCli, UserErrorsExitTwoWithOneLine) {
+  struct Case {
+    std::string args, needle;
+  };
+  const std::vector<Case> cases = {
+      {"/nonexistent/ckpt --image front=" + kImage + " --state 1,2,3,4,5,6 --instruction x", "/nonexistent/ckpt"},
+      {kDemo + " --image wrist=" + kImage + " --state 1,2,3,4,5,6 --instruction x", "wrist"},
+      {kDemo + " --image front=" + kImage + " --state 1,2,3 --instruction x", "expects 6"},
+      {kDemo + " --image front=" + kImage + " --state 1,a,3,4,5,6 --instruction x", "'a' is not a number"},
+      {kDemo + " --image front=/nonexistent.png --state 1,2,3,4,5,6 --instruction x", "/nonexistent.png"},
+      {kDemo + " --image front" + " --state 1,2,3,4,5,6 --instruction x", "CAMERA=FILE"},
+      {kDemo + " --image front=" + std::string(TETHER_SOURCE_DIR) + "/README.md --state 1,2,3,4,5,6 --instruction x",
+       "README.md"},
+      {kDemo + " --state 1,2,3,4,5,6 --instruction x", "--image"},
+  };
+  for (const auto& c : cases) {
+    const CliRun r = run_tether("predict " + c.args);
+    EXPECT_EQ(r.code, 2) << c.args << "\n" << r.err;
+    EXPECT_NE(r.err.find(c.needle), std::string::npos) << c.args << "\n" << r.err;
+    EXPECT_EQ(lines(r.err), 1) << c.args << "\n" << r.err;
+    EXPECT_TRUE(r.out.empty()) << c.args;
+  }
+}
+
+TEST(PredictCli, CorruptWeightsNameTheFile) {
+  const fs::path dir = fs::temp_directory_path() / ("tether_corrupt_" + std::to_string(::getpid()));
+  fs::remove_all(dir);
+  fs::copy(kDemo, dir, fs::copy_options::recursive);
+  fs::resize_file(dir / "model.safetensors", fs::file_size(dir / "model.safetensors") / 2);
+  const CliRun r = run_tether("predict " + dir.string() + " --image front=" + kImage + " --state 1,2,3,4,5,6 --instruction x");
+  EXPECT_EQ(r.code, 2) << r.err;
+  EXPECT_NE(r.err.find("model.safetensors"), std::string::npos) << r.err;
+  fs::remove_all(dir);
+}
+
+TEST(PredictCli, MissingStatsAreAnnounced) {
+  const std::string ckpt = std::string(TETHER_FIXTURES_DIR) + "/smolvla/cam1_nostats/checkpoint";
+  const std::string img = std::string(TETHER_FIXTURES_DIR) + "/smolvla/cam1_nostats/inputs/camera1_0.png";
+  const CliRun r = run_tether("predict " + ckpt + " --image camera1=" + img + " --state 0,0,0,0,0,0 --instruction 'go' --json");
+  ASSERT_EQ(r.code, 0) << r.err;
+  EXPECT_NE(r.err.find("warning: observation.state"), std::string::npos) << r.err;
+  EXPECT_NE(r.err.find("no stats"), std::string::npos) << r.err;
+}
