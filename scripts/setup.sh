@@ -9,7 +9,7 @@ packages=(
   build-essential cmake ninja-build pkg-config git
   libopenblas-openmp-dev libdnnl-dev
   nlohmann-json3-dev libcli11-dev libspdlog-dev libfmt-dev
-  libpcre2-dev libicu-dev libspng-dev libturbojpeg0-dev
+  libpcre2-dev libicu-dev libspng-dev libturbojpeg0-dev libboost1.81-dev
   libgtest-dev libgmock-dev libbenchmark-dev
 )
 missing=()
