@@ -8,6 +8,7 @@
 #include <cmath>
 #include <cstring>
 #include <string>
+#include <type_traits>
 #include <vector>
 
 #include "backend/cpu/gemm.h"
@@ -38,8 +39,16 @@ void for_chunks(int64_t n, Body&& body) {
   }
 }
 
-void require(bool ok, const char* kernel, const std::string& what) {
-  if (!ok) throw Error(ErrorCode::invalid_argument, std::string(kernel) + ": " + what);
+// `what` is a message or a function building one: messages are built only on failure, because kernels run
+// inside the denoise loop, which must not allocate.
+template <typename What>
+void require(bool ok, const char* kernel, What&& what) {
+  if (ok) return;
+  if constexpr (std::is_invocable_v<What>) {
+    throw Error(ErrorCode::invalid_argument, std::string(kernel) + ": " + std::string(what()));
+  } else {
+    throw Error(ErrorCode::invalid_argument, std::string(kernel) + ": " + std::string(what));
+  }
 }
 
 }  // namespace
@@ -100,7 +109,7 @@ void rms_norm(const float* x, int64_t rows, int64_t n, const float* weight, floa
 
 void rope(float* x, int64_t batch, int64_t len, int64_t heads, int64_t head_dim, const int64_t* positions,
           float max_wavelength) {
-  require(head_dim > 0 && head_dim % 2 == 0, "rope", "head_dim must be even, got " + std::to_string(head_dim));
+  require(head_dim > 0 && head_dim % 2 == 0, "rope", [&] { return "head_dim must be even, got " + std::to_string(head_dim); });
   const int64_t half = head_dim / 2;
   // timescale[i] = max_wavelength ** (float(2 / D) * i), a float32 power; computing it in double and
   // rounding once gives the correctly rounded float.
@@ -214,8 +223,10 @@ void scale(float* x, int64_t n, float s) {
 void patch_embed(const float* pixels, int64_t batch, int64_t channels, int64_t height, int64_t width,
                  const float* weight, const float* bias, int64_t embed, int64_t patch, float* out) {
   require(patch > 0 && height % patch == 0 && width % patch == 0, "patch_embed",
-          "image " + std::to_string(height) + "x" + std::to_string(width) + " is not a multiple of patch " +
-              std::to_string(patch));
+          [&] {
+            return "image " + std::to_string(height) + "x" + std::to_string(width) + " is not a multiple of patch " +
+                   std::to_string(patch);
+          });
   const int64_t ph = height / patch;
   const int64_t pw = width / patch;
   const int64_t patches = ph * pw;
@@ -245,9 +256,9 @@ void patch_embed(const float* pixels, int64_t batch, int64_t channels, int64_t h
 
 void pixel_shuffle(const float* x, int64_t batch, int64_t seq, int64_t embed, int64_t ratio, float* out) {
   int64_t side = int64_t(std::llround(std::sqrt(double(seq))));
-  require(side * side == seq, "pixel_shuffle", "sequence length " + std::to_string(seq) + " is not a square");
+  require(side * side == seq, "pixel_shuffle", [&] { return "sequence length " + std::to_string(seq) + " is not a square"; });
   require(ratio > 0 && side % ratio == 0, "pixel_shuffle",
-          "side " + std::to_string(side) + " is not divisible by ratio " + std::to_string(ratio));
+          [&] { return "side " + std::to_string(side) + " is not divisible by ratio " + std::to_string(ratio); });
   const int64_t out_side = side / ratio;
   const int64_t out_seq = out_side * out_side;
   const int64_t out_embed = embed * ratio * ratio;
