@@ -353,17 +353,24 @@ void SmolVLA::build_prefix(const std::vector<ModelInput>& batch, ModelOutput& ou
   const int64_t L = enc.length;
   out.timings.preprocess_ms = ms_since(t0);
 
-  // Vision tower + connector, one camera at a time over the whole batch.
+  // Vision tower + connector over runs of up to kVisionGroup present images (camera-major order), so the
+  // GEMMs see several images at once while activation memory stays bounded for large batches. Masked fillers
+  // are skipped: their features never reach an unmasked token.
   const auto t1 = std::chrono::steady_clock::now();
   const int64_t patches = vision_.num_patches(H, W), T = connector_.tokens(patches);
-  vision_out_.resize(std::size_t(B * patches * vision_.hidden()));
+  constexpr int64_t kVisionGroup = 4;
+  vision_out_.resize(std::size_t(std::min(ncam * B, kVisionGroup) * patches * vision_.hidden()));
   img_tokens_.resize(std::size_t(ncam * B * T * D));
-  for (int64_t c = 0; c < ncam; ++c) {
-    bool any = false;
-    for (int64_t b = 0; b < B; ++b) any |= img_present_[c * B + b] != 0;
-    if (!any) continue;  // only masked fillers: their features never reach an unmasked token
-    vision_.forward(&pixels_[c * B * img_elems], B, H, W, vision_out_.data());
-    connector_.forward(vision_out_.data(), B, patches, &img_tokens_[c * B * T * D]);
+  for (int64_t i = 0; i < ncam * B;) {
+    if (!img_present_[i]) {
+      ++i;
+      continue;
+    }
+    int64_t n = 1;
+    while (n < kVisionGroup && i + n < ncam * B && img_present_[i + n]) ++n;
+    vision_.forward(&pixels_[i * img_elems], n, H, W, vision_out_.data());
+    connector_.forward(vision_out_.data(), n, patches, &img_tokens_[i * T * D]);
+    i += n;
   }
   out.timings.vision_ms = ms_since(t1);
   if (dumping()) {

@@ -1,0 +1,31 @@
+// The body of POST /act: JSON to an Observation, with every check of the API contract done here, before the request
+// can reach a batch (one malformed request must never fail the requests it would have been batched with).
+#pragma once
+
+#include <optional>
+#include <string>
+#include <string_view>
+
+#include "models/model.h"
+#include "policy/policy.h"
+#include "serve/http_error.h"
+
+namespace tether::serve {
+
+struct ActRequest {
+  policy::Observation observation;      // images keyed by the checkpoint's camera names
+  std::optional<uint64_t> seed;         // absent: the server derives one from the request id
+  std::optional<std::string> episode_id;
+};
+
+// Deepest JSON nesting accepted: the schema needs 4; the cap keeps hostile input from exhausting the stack.
+inline constexpr int kMaxJsonDepth = 16;
+
+// Throws HttpError(400, code) with code one of bad_json, invalid_field, invalid_state, invalid_image,
+// unknown_camera, unknown_field, missing_field; the message names the field at fault.
+ActRequest parse_act_request(std::string_view body, const models::ModelSpec& spec);
+
+// "front" -> "observation.images.front" when the model has that camera; nullopt for a camera it does not have.
+std::optional<std::string> resolve_camera(const std::string& name, const std::vector<std::string>& cameras);
+
+}  // namespace tether::serve
