@@ -1,0 +1,163 @@
+// POST /act body parsing: strict schema, stable error codes, images decoded here so a bad one fails only its request.
+#include "serve/act_request.h"
+
+#include <cmath>
+
+#include "core/json_util.h"
+#include "serve/base64.h"
+#include "vision/image.h"
+
+namespace tether::serve {
+
+namespace {
+
+using J = nlohmann::json;  // request key order carries no meaning
+
+[[noreturn]] void fail(const std::string& code, const std::string& message) { throw HttpError(400, code, message); }
+
+std::string type_name(const J& v) { return v.type_name(); }
+
+vision::Image decode_raw(const J& obj, const std::string& field) {
+  for (auto it = obj.begin(); it != obj.end(); ++it)
+    if (it.key() != "data" && it.key() != "shape")
+      fail("invalid_field", field + ": unexpected key '" + it.key() + "' (a raw image has only 'data' and 'shape')");
+  const auto data = obj.find("data");
+  const auto shape = obj.find("shape");
+  if (data == obj.end() || shape == obj.end())
+    fail("invalid_field", field + ": a raw image needs both 'data' (base64 of uint8 RGB) and 'shape' ([H, W, 3])");
+  if (!data->is_string()) fail("invalid_field", field + ".data: expected a base64 string, got " + type_name(*data));
+  if (!shape->is_array() || shape->size() != 3)
+    fail("invalid_field", field + ".shape: expected [H, W, 3]");
+  int64_t dims[3];
+  for (int i = 0; i < 3; ++i) {
+    const J& d = (*shape)[std::size_t(i)];
+    if (!d.is_number_integer() || d.get<int64_t>() < 1 || d.get<int64_t>() > 1'000'000)
+      fail("invalid_field", field + ".shape[" + std::to_string(i) + "]: expected a positive integer");
+    dims[i] = d.get<int64_t>();
+  }
+  if (dims[2] != 3) fail("invalid_field", field + ".shape: the last dimension must be 3 (RGB), got " + std::to_string(dims[2]));
+  if (dims[0] * dims[1] > vision::kMaxImagePixels)
+    fail("invalid_field", field + ".shape: " + std::to_string(dims[0]) + "x" + std::to_string(dims[1]) +
+                              " exceeds the " + std::to_string(vision::kMaxImagePixels) + "-pixel limit");
+  std::string why;
+  auto bytes = base64_decode(data->get_ref<const std::string&>(), &why);
+  if (!bytes) fail("invalid_field", field + ".data: " + why);
+  const auto expected = std::size_t(dims[0] * dims[1] * 3);
+  if (bytes->size() != expected)
+    fail("invalid_field", field + ".data: " + std::to_string(bytes->size()) + " bytes, shape [" + std::to_string(dims[0]) +
+                              ", " + std::to_string(dims[1]) + ", 3] needs " + std::to_string(expected));
+  vision::Image img;
+  img.height = int(dims[0]);
+  img.width = int(dims[1]);
+  img.rgb = std::move(*bytes);
+  return img;
+}
+
+vision::Image decode_field_image(const J& v, const std::string& field) {
+  if (v.is_object()) return decode_raw(v, field);
+  if (!v.is_string())
+    fail("invalid_field", field + ": expected a base64 PNG/JPEG string or {\"data\", \"shape\"}, got " + type_name(v));
+  const auto& text = v.get_ref<const std::string&>();
+  if (text.empty()) fail("invalid_field", field + ": empty image");
+  std::string why;
+  auto bytes = base64_decode(text, &why);
+  if (!bytes) fail("invalid_field", field + ": " + why);
+  try {
+    return vision::decode_image(bytes->data(), bytes->size(), field);
+  } catch (const std::exception& e) {
+    fail("invalid_image", e.what());
+  }
+}
+
+}  // namespace
+
+std::optional<std::string> resolve_camera(const std::string& name, const std::vector<std::string>& cameras) {
+  for (const auto& c : cameras)
+    if (c == name || c == "observation.images." + name) return c;
+  return std::nullopt;
+}
+
+ActRequest parse_act_request(std::string_view body, const models::ModelSpec& spec) {
+  J j;
+  try {
+    // The callback caps nesting before any deep structure is built.
+    j = J::parse(body.begin(), body.end(), [](int depth, J::parse_event_t, J&) {
+      if (depth > kMaxJsonDepth) throw HttpError(400, "bad_json", "JSON nested deeper than " + std::to_string(kMaxJsonDepth) + " levels");
+      return true;
+    });
+  } catch (const HttpError&) {
+    throw;
+  } catch (const J::exception& e) {
+    fail("bad_json", std::string("the body is not valid JSON: ") + e.what());
+  }
+  if (!j.is_object()) fail("bad_json", "the body must be a JSON object, got " + type_name(j));
+
+  static const char* const kKnown[] = {"instruction", "state", "images", "image", "episode_id", "seed"};
+  for (auto it = j.begin(); it != j.end(); ++it) {
+    bool known = false;
+    for (const char* k : kKnown) known = known || it.key() == k;
+    if (!known)
+      fail("unknown_field", "unknown field '" + it.key() + "' (accepted: instruction, state, images, image, episode_id, seed)");
+  }
+
+  ActRequest req;
+  policy::Observation& obs = req.observation;
+
+  const auto instruction = j.find("instruction");
+  if (instruction == j.end() || instruction->is_null()) fail("missing_field", "'instruction' is required");
+  if (!instruction->is_string()) fail("invalid_field", "instruction: expected a string, got " + type_name(*instruction));
+  obs.instruction = instruction->get<std::string>();
+
+  const auto state = j.find("state");
+  if (state == j.end() || state->is_null()) fail("missing_field", "'state' is required (" + std::to_string(spec.state_dim) + " numbers)");
+  if (!state->is_array()) fail("invalid_field", "state: expected an array of numbers, got " + type_name(*state));
+  for (std::size_t i = 0; i < state->size(); ++i)
+    if (!(*state)[i].is_number()) fail("invalid_field", "state[" + std::to_string(i) + "]: expected a number, got " + type_name((*state)[i]));
+  if (int64_t(state->size()) != spec.state_dim)
+    fail("invalid_state", "state has " + std::to_string(state->size()) + " values, the model expects " + std::to_string(spec.state_dim));
+  obs.state.reserve(state->size());
+  for (std::size_t i = 0; i < state->size(); ++i) {
+    const float v = float((*state)[i].get<double>());
+    if (!std::isfinite(v)) fail("invalid_state", "state[" + std::to_string(i) + "] is not a finite float32");
+    obs.state.push_back(v);
+  }
+
+  const auto images = j.find("images");
+  const auto image = j.find("image");
+  const bool has_images = images != j.end() && !images->is_null();
+  const bool has_image = image != j.end() && !image->is_null();
+  if (has_images && has_image) fail("invalid_field", "give either 'image' (the first camera) or 'images', not both");
+  if (!has_images && !has_image) fail("missing_field", "an image is required: 'images' {camera: image} or 'image'");
+  if (has_image) {
+    if (spec.cameras.empty()) fail("unknown_camera", "the model has no camera inputs");
+    obs.images[spec.cameras.front()] = decode_field_image(*image, "image");
+  } else {
+    if (!images->is_object()) fail("invalid_field", "images: expected an object {camera: image}, got " + type_name(*images));
+    if (images->empty()) fail("missing_field", "images: at least one camera image is required");
+    for (auto it = images->begin(); it != images->end(); ++it) {
+      const auto camera = resolve_camera(it.key(), spec.cameras);
+      if (!camera) {
+        std::string known;
+        for (const auto& c : spec.cameras) known += (known.empty() ? "" : ", ") + c;
+        fail("unknown_camera", "images: the model has no camera '" + it.key() + "' (it has: " + known + ")");
+      }
+      if (obs.images.count(*camera)) fail("invalid_field", "images: camera '" + *camera + "' is given twice");
+      obs.images[*camera] = decode_field_image(it.value(), "images." + it.key());
+    }
+  }
+
+  const auto episode = j.find("episode_id");
+  if (episode != j.end() && !episode->is_null()) {
+    if (!episode->is_string()) fail("invalid_field", "episode_id: expected a string, got " + type_name(*episode));
+    req.episode_id = episode->get<std::string>();
+  }
+  const auto seed = j.find("seed");
+  if (seed != j.end() && !seed->is_null()) {
+    if (!seed->is_number_integer() || (seed->is_number_integer() && !seed->is_number_unsigned() && seed->get<int64_t>() < 0))
+      fail("invalid_field", "seed: expected an integer >= 0");
+    req.seed = seed->get<uint64_t>();
+  }
+  return req;
+}
+
+}  // namespace tether::serve
