@@ -17,5 +17,6 @@ struct Verb {
 
 Verb add_predict(CLI::App& app);
 Verb add_bench(CLI::App& app);
+Verb add_doctor(CLI::App& app);
 
 }  // namespace tether::cli

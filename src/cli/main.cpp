@@ -15,6 +15,7 @@ int main(int argc, char** argv) {
   const std::vector<tether::cli::Verb> verbs = {
       tether::cli::add_predict(app),
       tether::cli::add_bench(app),
+      tether::cli::add_doctor(app),
   };
   try {
     app.parse(argc, argv);

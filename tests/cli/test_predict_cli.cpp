@@ -1,13 +1,10 @@
 // `tether predict` end to end through the binary: output, reproducibility and every user error's exit code.
 #include <gtest/gtest.h>
-#include <sys/wait.h>
-#include <unistd.h>
 
-#include <array>
-#include <cstdio>
 #include <filesystem>
 #include <fstream>
 
+#include "cli_runner.h"
 #include "core/json_util.h"
 #include "core/safetensors.h"
 
@@ -15,27 +12,6 @@ using namespace tether;
 namespace fs = std::filesystem;
 
 namespace {
-
-struct CliRun {
-  int code = -1;
-  std::string out, err;
-};
-
-// Runs the binary with `args` (already shell-quoted), capturing stdout and stderr separately.
-CliRun run_tether(const std::string& args) {
-  const fs::path err_file = fs::temp_directory_path() / ("tether_cli_err_" + std::to_string(::getpid()));
-  const std::string cmd = std::string(TETHER_BINARY) + " " + args + " 2>" + err_file.string();
-  CliRun r;
-  FILE* pipe = popen(cmd.c_str(), "r");
-  std::array<char, 4096> buf{};
-  std::size_t n;
-  while ((n = fread(buf.data(), 1, buf.size(), pipe)) > 0) r.out.append(buf.data(), n);
-  const int status = pclose(pipe);
-  r.code = WIFEXITED(status) ? WEXITSTATUS(status) : -1;
-  std::ifstream in(err_file);
-  r.err.assign(std::istreambuf_iterator<char>(in), {});
-  return r;
-}
 
 const std::string kDemo = std::string(TETHER_SOURCE_DIR) + "/models/demo/smolvla-demo";
 const std::string kImage = std::string(TETHER_SOURCE_DIR) + "/models/demo/sample.png";

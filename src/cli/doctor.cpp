@@ -1,0 +1,315 @@
+// `tether doctor`: what this machine offers Tether, each check with a one-line remediation when it fails.
+// CUDA libraries are probed with dlopen, so doctor runs (and says so) on machines without them.
+#include <dlfcn.h>
+#include <sys/statvfs.h>
+#include <unistd.h>
+
+#include <cstdio>
+#include <cstdlib>
+#include <filesystem>
+#include <fstream>
+#include <iostream>
+#include <sstream>
+
+#if defined(__x86_64__)
+#include <cpuid.h>
+#endif
+
+#include "backend/cpu/gemm.h"
+#include "cli/commands.h"
+#include "core/json_util.h"
+#include "core/safetensors.h"
+
+namespace tether::cli {
+
+namespace fs = std::filesystem;
+
+namespace {
+
+enum class Status { ok, warn, fail, skip };
+
+struct Check {
+  std::string group, name;
+  Status status;
+  std::string detail, remedy;
+};
+
+const char* mark(Status s) {
+  switch (s) {
+    case Status::ok: return "\u2713";
+    case Status::warn: return "!";
+    case Status::fail: return "\u2717";
+    case Status::skip: return "-";
+  }
+  return "?";
+}
+
+const char* status_name(Status s) {
+  switch (s) {
+    case Status::ok: return "ok";
+    case Status::warn: return "warn";
+    case Status::fail: return "fail";
+    case Status::skip: return "skip";
+  }
+  return "?";
+}
+
+std::string cpu_model() {
+  std::ifstream in("/proc/cpuinfo");
+  std::string line;
+  while (std::getline(in, line))
+    if (line.rfind("model name", 0) == 0) return line.substr(line.find(':') + 2);
+  return "unknown CPU";
+}
+
+// kB values of /proc/meminfo.
+int64_t meminfo_kb(const std::string& key) {
+  std::ifstream in("/proc/meminfo");
+  std::string name;
+  int64_t value = 0;
+  std::string unit;
+  while (in >> name >> value >> unit)
+    if (name == key + ":") return value;
+  return -1;
+}
+
+std::string gb(double bytes) {
+  char buf[32];
+  if (bytes < 1e9) std::snprintf(buf, sizeof buf, "%.1f MB", bytes / 1e6);
+  else std::snprintf(buf, sizeof buf, "%.1f GB", bytes / 1e9);
+  return buf;
+}
+
+std::string count_str(int64_t n) {
+  char buf[32];
+  if (n >= 1000000) std::snprintf(buf, sizeof buf, "%.1fM", double(n) / 1e6);
+  else std::snprintf(buf, sizeof buf, "%.1fK", double(n) / 1e3);
+  return buf;
+}
+
+void cpu_checks(std::vector<Check>& out) {
+  out.push_back({"cpu", "processor", Status::ok, cpu_model() + ", " + std::to_string(sysconf(_SC_NPROCESSORS_ONLN)) + " cores", ""});
+#if defined(__x86_64__)
+  __builtin_cpu_init();
+  const bool avx2 = __builtin_cpu_supports("avx2") && __builtin_cpu_supports("fma");
+  const bool avx512 = __builtin_cpu_supports("avx512f");
+  unsigned a = 0, b = 0, c = 0, d = 0;
+  __cpuid_count(7, 1, a, b, c, d);
+  const bool avx512_bf16 = (a >> 5) & 1;
+  __cpuid_count(7, 0, a, b, c, d);
+  const bool amx_bf16 = (d >> 22) & 1, amx_tile = (d >> 24) & 1;
+  out.push_back({"cpu", "AVX2 + FMA", avx2 ? Status::ok : Status::fail, avx2 ? "present" : "missing",
+                 "Tether's CPU kernels need an x86-64-v3 processor (AVX2, FMA) or newer"});
+  out.push_back({"cpu", "AVX-512", avx512 ? Status::ok : Status::warn, avx512 ? "present (used by oneDNN and the kernels)" : "absent",
+                 "fine; AVX-512 processors run the float32 GEMMs about 2x faster"});
+  out.push_back({"cpu", "AVX-512 BF16", avx512_bf16 ? Status::ok : Status::skip,
+                 avx512_bf16 ? "present (bf16 GEMMs)" : "absent", ""});
+  out.push_back({"cpu", "AMX", amx_tile && amx_bf16 ? Status::ok : Status::skip,
+                 amx_tile && amx_bf16 ? "present (AMX-BF16 tiles)" : "absent", ""});
+#if defined(__AVX512F__)
+  const bool build_ok = avx512;
+  const char* build = "this build targets AVX-512 (-march=native at build time)";
+#else
+  const bool build_ok = avx2;
+  const char* build = "this build targets AVX2";
+#endif
+  out.push_back({"cpu", "build target", build_ok ? Status::ok : Status::fail, build,
+                 "rebuild on this machine: scripts/setup.sh (the default build tunes for the build machine's CPU)"});
+#elif defined(__aarch64__)
+  out.push_back({"cpu", "NEON", Status::ok, "present (AArch64)", ""});
+#endif
+  const char* omp = std::getenv("OMP_NUM_THREADS");
+  out.push_back({"cpu", "GEMM library", Status::ok,
+                 std::string(cpu::blas_name()) + ", " + std::to_string(cpu::blas_threads()) + " threads" +
+                     (omp ? std::string(" (OMP_NUM_THREADS=") + omp + ")" : ""),
+                 ""});
+}
+
+void memory_checks(std::vector<Check>& out) {
+  const int64_t total = meminfo_kb("MemTotal"), avail = meminfo_kb("MemAvailable");
+  const bool ok = avail > 2 * 1024 * 1024;
+  out.push_back({"memory", "RAM", ok ? Status::ok : Status::warn,
+                 gb(double(avail) * 1024) + " available of " + gb(double(total) * 1024),
+                 "a full-size SmolVLA needs about 1.5 GB in float32; close other processes or use a smaller model"});
+  for (const auto& [label, dir] :
+       {std::pair<std::string, fs::path>{"model cache", [] {
+          if (const char* v = std::getenv("HF_HUB_CACHE")) return fs::path(v);
+          if (const char* h = std::getenv("HF_HOME")) return fs::path(h) / "hub";
+          const char* home = std::getenv("HOME");
+          return fs::path(home ? home : "/") / ".cache" / "huggingface" / "hub";
+        }()}}) {
+    fs::path probe = dir;
+    while (!probe.empty() && !fs::exists(probe)) probe = probe.parent_path();
+    struct statvfs st {};
+    if (probe.empty() || statvfs(probe.c_str(), &st) != 0) {
+      out.push_back({"disk", label, Status::warn, dir.string() + ": cannot stat", "create the directory or set HF_HUB_CACHE"});
+      continue;
+    }
+    const double free_bytes = double(st.f_bavail) * double(st.f_frsize);
+    out.push_back({"disk", label, free_bytes > 5e9 ? Status::ok : Status::warn, dir.string() + ": " + gb(free_bytes) + " free",
+                   "free space or point HF_HUB_CACHE at a larger disk (checkpoints take 1-10 GB)"});
+  }
+}
+
+// Opens the first library of `names` that loads; returns its handle and the name used.
+std::pair<void*, std::string> open_any(std::initializer_list<const char*> names) {
+  for (const char* n : names)
+    if (void* h = dlopen(n, RTLD_NOW | RTLD_LOCAL)) return {h, n};
+  return {nullptr, ""};
+}
+
+std::string version_str(int v, int major_div, int minor_div) {
+  return std::to_string(v / major_div) + "." + std::to_string((v % major_div) / minor_div);
+}
+
+// Compute capabilities the CUDA backend is built for (see ARCHITECTURE: Ampere and newer).
+bool supported_cc(int major, int minor) {
+  const int cc = major * 10 + minor;
+  for (int s : {80, 86, 87, 89, 90, 100, 103, 110, 120, 121})
+    if (cc == s) return true;
+  return false;
+}
+
+void cuda_checks(std::vector<Check>& out) {
+  auto [cuda, cuda_name] = open_any({"libcuda.so.1", "libcuda.so"});
+  if (!cuda) {
+    out.push_back({"cuda", "driver", Status::skip, "no NVIDIA driver (libcuda.so.1 not found): CPU only",
+                   "install the NVIDIA driver to use a GPU"});
+  } else {
+    using InitFn = int (*)(unsigned);
+    using VersionFn = int (*)(int*);
+    using CountFn = int (*)(int*);
+    using DeviceFn = int (*)(int*, int);
+    using AttrFn = int (*)(int*, int, int);
+    using NameFn = int (*)(char*, int, int);
+    auto init = reinterpret_cast<InitFn>(dlsym(cuda, "cuInit"));
+    auto version = reinterpret_cast<VersionFn>(dlsym(cuda, "cuDriverGetVersion"));
+    auto count = reinterpret_cast<CountFn>(dlsym(cuda, "cuDeviceGetCount"));
+    auto device = reinterpret_cast<DeviceFn>(dlsym(cuda, "cuDeviceGet"));
+    auto attr = reinterpret_cast<AttrFn>(dlsym(cuda, "cuDeviceGetAttribute"));
+    auto name = reinterpret_cast<NameFn>(dlsym(cuda, "cuDeviceGetName"));
+    int v = 0, n = 0;
+    if (!init || !version || init(0) != 0 || version(&v) != 0) {
+      out.push_back({"cuda", "driver", Status::fail, cuda_name + " loaded but cuInit failed",
+                     "check the driver installation (nvidia-smi) and the device permissions"});
+    } else {
+      out.push_back({"cuda", "driver", Status::ok, "CUDA driver API " + version_str(v, 1000, 10), ""});
+      if (count && count(&n) == 0) {
+        for (int i = 0; i < n; ++i) {
+          int dev = 0, major = 0, minor = 0;
+          char buf[256] = {0};
+          device(&dev, i);
+          attr(&major, 75, dev);  // CU_DEVICE_ATTRIBUTE_COMPUTE_CAPABILITY_MAJOR
+          attr(&minor, 76, dev);  // ..._MINOR
+          name(buf, sizeof buf, dev);
+          const bool ok = supported_cc(major, minor);
+          out.push_back({"cuda", "GPU " + std::to_string(i), ok ? Status::ok : Status::warn,
+                         std::string(buf) + ", compute capability " + std::to_string(major) + "." + std::to_string(minor),
+                         "this GPU's compute capability is outside the supported table (8.0+); the CPU backend still works"});
+        }
+      }
+    }
+  }
+  auto [rt, rt_name] = open_any({"libcudart.so.13", "libcudart.so.12", "libcudart.so"});
+  if (!rt) {
+    out.push_back({"cuda", "runtime", Status::skip, "libcudart not found", "install the CUDA toolkit runtime (12 or 13)"});
+  } else {
+    using RtVersion = int (*)(int*);
+    auto f = reinterpret_cast<RtVersion>(dlsym(rt, "cudaRuntimeGetVersion"));
+    int v = 0;
+    out.push_back({"cuda", "runtime", f && f(&v) == 0 ? Status::ok : Status::warn,
+                   rt_name + (f && v ? ", CUDA " + version_str(v, 1000, 10) : ""), ""});
+  }
+  auto [blas, blas_lib] = open_any({"libcublas.so.13", "libcublas.so.12", "libcublas.so"});
+  if (!blas) {
+    out.push_back({"cuda", "cuBLAS", Status::skip, "libcublas not found", "install cuBLAS with the CUDA toolkit"});
+  } else {
+    using PropFn = int (*)(int, int*);
+    auto f = reinterpret_cast<PropFn>(dlsym(blas, "cublasGetProperty"));
+    int ma = 0, mi = 0, pa = 0;
+    const bool ok = f && f(0, &ma) == 0 && f(1, &mi) == 0 && f(2, &pa) == 0;
+    out.push_back({"cuda", "cuBLAS", ok ? Status::ok : Status::warn,
+                   blas_lib + (ok ? ", version " + std::to_string(ma) + "." + std::to_string(mi) + "." + std::to_string(pa) : ""), ""});
+  }
+  auto [dnn, dnn_lib] = open_any({"libcudnn.so.9", "libcudnn.so.8", "libcudnn.so"});
+  if (!dnn) {
+    out.push_back({"cuda", "cuDNN", Status::skip, "libcudnn not found", "optional; install cuDNN 9 for the GPU vision kernels"});
+  } else {
+    using DnnVersion = std::size_t (*)();
+    auto f = reinterpret_cast<DnnVersion>(dlsym(dnn, "cudnnGetVersion"));
+    out.push_back({"cuda", "cuDNN", f ? Status::ok : Status::warn, dnn_lib + (f ? ", version " + std::to_string(f()) : ""), ""});
+  }
+}
+
+void model_checks(const std::string& dir, std::vector<Check>& out) {
+  const fs::path d(dir);
+  for (const char* f : {"config.json", "model.safetensors"}) {
+    const bool ok = fs::exists(d / f);
+    out.push_back({"model", f, ok ? Status::ok : Status::fail, ok ? (d / f).string() : (d / f).string() + " missing",
+                   "point at a LeRobot checkpoint directory (it has config.json and model.safetensors)"});
+  }
+  for (const char* f : {"policy_preprocessor.json", "policy_postprocessor.json"}) {
+    const bool ok = fs::exists(d / f);
+    out.push_back({"model", f, ok ? Status::ok : Status::warn, ok ? "present" : "missing: normalisation falls back to config.json without stats",
+                   "export the processors with the checkpoint (lerobot saves them next to the policy)"});
+  }
+  if (!fs::exists(d / "model.safetensors")) return;
+  try {
+    const SafeTensorsFile f = SafeTensorsFile::open((d / "model.safetensors").string());
+    int64_t params = 0;
+    for (const auto& name : f.names()) params += shape_numel(f.entry(name).shape);
+    const double need = double(params) * 4.0 * 1.1;  // float32 weights plus activations
+    const double avail = double(meminfo_kb("MemAvailable")) * 1024.0;
+    out.push_back({"model", "weights", Status::ok,
+                   count_str(params) + " parameters, " + gb(double(fs::file_size(d / "model.safetensors"))) + " on disk", ""});
+    out.push_back({"model", "fits in memory (fp32)", need < avail ? Status::ok : Status::fail,
+                   "needs about " + gb(need) + ", " + gb(avail) + " available",
+                   "free memory, or export in bf16 (about half) when that precision lands"});
+  } catch (const Error& e) {
+    out.push_back({"model", "weights", Status::fail, e.what(), "re-download the checkpoint: the file is damaged"});
+  }
+}
+
+struct DoctorArgs {
+  std::string model;
+  bool json = false;
+};
+
+int run_doctor(const DoctorArgs& a) {
+  std::vector<Check> checks;
+  cpu_checks(checks);
+  memory_checks(checks);
+  cuda_checks(checks);
+  if (!a.model.empty()) model_checks(a.model, checks);
+  bool failed = false;
+  for (const auto& c : checks) failed |= c.status == Status::fail;
+  if (a.json) {
+    Json arr = Json::array();
+    for (const auto& c : checks)
+      arr.push_back({{"group", c.group}, {"check", c.name}, {"status", status_name(c.status)}, {"detail", c.detail},
+                     {"remedy", c.status == Status::ok ? "" : c.remedy}});
+    std::cout << Json{{"ok", !failed}, {"checks", arr}}.dump(2) << "\n";
+  } else {
+    std::string group;
+    for (const auto& c : checks) {
+      if (c.group != group) std::printf("%s\n", (group = c.group).c_str());
+      std::printf("  %s %-22s %s\n", mark(c.status), c.name.c_str(), c.detail.c_str());
+      if ((c.status == Status::fail || c.status == Status::warn) && !c.remedy.empty())
+        std::printf("    -> %s\n", c.remedy.c_str());
+    }
+    std::printf("%s\n", failed ? "some checks failed" : "all required checks passed");
+  }
+  return failed ? kExitCheckFailed : kExitOk;
+}
+
+}  // namespace
+
+Verb add_doctor(CLI::App& app) {
+  auto args = std::make_shared<DoctorArgs>();
+  CLI::App* sub = app.add_subcommand("doctor", "Check this machine (CPU features, memory, disk, CUDA) and a model directory");
+  sub->add_option("model", args->model, "Checkpoint directory to check (optional)");
+  sub->add_flag("--json", args->json, "Print JSON");
+  return {sub, [args] { return run_doctor(*args); }};
+}
+
+}  // namespace tether::cli

@@ -1,0 +1,34 @@
+// Runs the real `tether` binary the way a user would and captures its exit code, stdout and stderr.
+#pragma once
+
+#include <sys/wait.h>
+#include <unistd.h>
+
+#include <array>
+#include <cstdio>
+#include <filesystem>
+#include <fstream>
+#include <iterator>
+#include <string>
+
+struct CliRun {
+  int code = -1;
+  std::string out, err;
+};
+
+// `args` are already shell-quoted.
+inline CliRun run_tether(const std::string& args) {
+  const std::filesystem::path err_file =
+      std::filesystem::temp_directory_path() / ("tether_cli_err_" + std::to_string(::getpid()));
+  const std::string cmd = std::string(TETHER_BINARY) + " " + args + " 2>" + err_file.string();
+  CliRun r;
+  FILE* pipe = popen(cmd.c_str(), "r");
+  std::array<char, 4096> buf{};
+  std::size_t n;
+  while ((n = fread(buf.data(), 1, buf.size(), pipe)) > 0) r.out.append(buf.data(), n);
+  const int status = pclose(pipe);
+  r.code = WIFEXITED(status) ? WEXITSTATUS(status) : -1;
+  std::ifstream in(err_file);
+  r.err.assign(std::istreambuf_iterator<char>(in), {});
+  return r;
+}
