@@ -18,5 +18,9 @@ struct Verb {
 Verb add_predict(CLI::App& app);
 Verb add_bench(CLI::App& app);
 Verb add_doctor(CLI::App& app);
+Verb add_inspect(CLI::App& app);
+
+// Path of a data file shipped with Tether (models/targets.json, ...); TETHER_DATA_DIR overrides the directory.
+std::string data_file(const std::string& name);
 
 }  // namespace tether::cli

@@ -16,6 +16,7 @@ int main(int argc, char** argv) {
       tether::cli::add_predict(app),
       tether::cli::add_bench(app),
       tether::cli::add_doctor(app),
+      tether::cli::add_inspect(app),
   };
   try {
     app.parse(argc, argv);
