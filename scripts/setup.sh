@@ -10,6 +10,7 @@ packages=(
   libopenblas-openmp-dev libdnnl-dev
   nlohmann-json3-dev libcli11-dev libspdlog-dev libfmt-dev
   libpcre2-dev libicu-dev libspng-dev libturbojpeg0-dev libboost1.81-dev
+  libcurl4-openssl-dev libssl-dev
   libgtest-dev libgmock-dev libbenchmark-dev
 )
 missing=()
