@@ -17,6 +17,8 @@ struct Verb {
 
 Verb add_predict(CLI::App& app);
 Verb add_bench(CLI::App& app);
+Verb add_serve(CLI::App& app);
+Verb add_go(CLI::App& app);
 Verb add_doctor(CLI::App& app);
 Verb add_inspect(CLI::App& app);
 

@@ -15,6 +15,8 @@ int main(int argc, char** argv) {
   const std::vector<tether::cli::Verb> verbs = {
       tether::cli::add_predict(app),
       tether::cli::add_bench(app),
+      tether::cli::add_serve(app),
+      tether::cli::add_go(app),
       tether::cli::add_doctor(app),
       tether::cli::add_inspect(app),
   };

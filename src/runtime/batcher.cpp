@@ -164,6 +164,7 @@ void Batcher::run_batch(std::vector<Pending>& pending) {
     r.predict_ms = prediction.total_ms;
     r.queue_ms = ms_between(live[i].enqueued, start);
     r.batch_size = int(live.size());
+    r.index_in_batch = int(i);
     complete(live[i].done, nullptr, std::move(r));
   }
 }

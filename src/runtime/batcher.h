@@ -43,6 +43,7 @@ struct BatchResult {
   double normalize_ms = 0, postprocess_ms = 0, predict_ms = 0;
   double queue_ms = 0;  // submit -> the forward pass started
   int batch_size = 0;   // requests that shared the forward pass
+  int index_in_batch = 0;  // this request's row (0: count the batch once in metrics)
 };
 
 using PredictFn = std::function<policy::Prediction(const std::vector<policy::Observation>&)>;

@@ -1,0 +1,59 @@
+// Server metrics in the Prometheus text exposition format 0.0.4: request counts, per-stage latency histograms,
+// batch sizes, queue depth, readiness. Thread-safe; rendering takes a consistent snapshot.
+#pragma once
+
+#include <cstdint>
+#include <map>
+#include <mutex>
+#include <string>
+#include <vector>
+
+namespace tether::serve {
+
+// Cumulative-bucket histogram (Prometheus semantics: bucket `le` counts observations <= le).
+class Histogram {
+ public:
+  explicit Histogram(std::vector<double> upper_bounds);
+  void observe(double value);
+  const std::vector<double>& bounds() const { return bounds_; }
+  // Per-bucket counts (not cumulative), one more than bounds (the last is +Inf).
+  const std::vector<uint64_t>& counts() const { return counts_; }
+  double sum() const { return sum_; }
+  uint64_t count() const { return count_; }
+
+ private:
+  std::vector<double> bounds_;
+  std::vector<uint64_t> counts_;
+  double sum_ = 0;
+  uint64_t count_ = 0;
+};
+
+class Metrics {
+ public:
+  Metrics(std::string version, std::string gemm);
+
+  void count_request(const std::string& endpoint, int status);
+  // `stage`: total, queue, preprocess, vision, prefix, denoise, postprocess.
+  void observe_stage(const std::string& stage, double seconds);
+  void observe_batch_size(int size);
+  void set_queue_depth(int depth);
+  void set_model_ready(bool ready);
+  // The GEMM library is known once the model has loaded.
+  void set_gemm(const std::string& gemm);
+
+  std::string render() const;
+
+ private:
+  mutable std::mutex mu_;
+  std::string version_, gemm_;
+  std::map<std::pair<std::string, int>, uint64_t> requests_;
+  std::map<std::string, Histogram> stages_;
+  Histogram batch_sizes_;
+  int queue_depth_ = 0;
+  bool model_ready_ = false;
+};
+
+// Escapes a label value for the text format (backslash, double quote, newline).
+std::string escape_label(const std::string& value);
+
+}  // namespace tether::serve
