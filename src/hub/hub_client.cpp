@@ -477,6 +477,10 @@ class Session {
           have = 0;
           continue;
         }
+        if (r.status >= 300 && !is_hub_url(url, opt_.endpoint))
+          throw HubError(HubErrorKind::server, "download of " + what + " from " + url_origin(url) + " failed (HTTP " +
+                                                   std::to_string(r.status) +
+                                                   "); its signed link may have expired, run again");
         if (r.status >= 300) {
           auto f = http_failure(r, url, opt_.endpoint, repo_id, m.commit, path, opt_.token && send_auth);
           throw HubError(f.kind, f.message);

@@ -38,6 +38,7 @@ MAIN_FILES = {
     "model.safetensors": (pattern_bytes(300 * 1024, 1), True),
     "big.bin": (pattern_bytes(1024 * 1024, 2), True),
     "corrupt.bin": (pattern_bytes(64 * 1024, 3), True),
+    "norange.bin": (pattern_bytes(48 * 1024, 4), True),
 }
 DEV_FILES = dict(MAIN_FILES)
 DEV_FILES["config.json"] = (b'{"type": "smolvla", "chunk_size": 10}\n', False)
@@ -58,6 +59,7 @@ for repo in REPOS.values():
                 BLOBS[hashlib.sha256(content).hexdigest()] = content
 CORRUPT_SHA = hashlib.sha256(MAIN_FILES["corrupt.bin"][0]).hexdigest()
 BIG_SHA = hashlib.sha256(MAIN_FILES["big.bin"][0]).hexdigest()
+NORANGE_SHA = hashlib.sha256(MAIN_FILES["norange.bin"][0]).hexdigest()  # the CDN ignores Range for it
 
 LOG = []
 LOG_LOCK = threading.Lock()
@@ -181,7 +183,7 @@ class CdnHandler(Handler):
             content = content[:100] + bytes([content[100] ^ 0xFF]) + content[101:]
         start = 0
         rng = self.headers.get("Range")
-        if rng and rng.startswith("bytes=") and rng.endswith("-"):
+        if rng and rng.startswith("bytes=") and rng.endswith("-") and sha != NORANGE_SHA:
             start = int(rng[len("bytes="):-1])
             if start >= len(content):
                 return self.send(416, [("Content-Range", "bytes */%d" % len(content))])

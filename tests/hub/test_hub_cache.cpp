@@ -137,6 +137,24 @@ TEST(HubEnv, TokenFromEnvironmentOrTokenFileAndOfflineFlag) {
   }
 }
 
+TEST(HubEnv, ClientFromEnvironment) {
+  ScratchDir dir("from_env");
+  ScopedEnv endpoint("HF_ENDPOINT", "http://mirror.example:8080/");
+  ScopedEnv cache("HF_HUB_CACHE", dir.str());
+  ScopedEnv token("HF_TOKEN", "hf_abc");
+  ScopedEnv offline("HF_HUB_OFFLINE", "1");
+  ScopedEnv etag_timeout("HF_HUB_ETAG_TIMEOUT", "3");
+  ScopedEnv download_timeout("HF_HUB_DOWNLOAD_TIMEOUT", "not a number");
+  HubClient c = HubClient::from_env();
+  EXPECT_EQ(c.options().endpoint, "http://mirror.example:8080");
+  EXPECT_EQ(c.options().cache_root, dir.str());
+  EXPECT_EQ(c.cache().root(), dir.str());
+  EXPECT_EQ(c.options().token.value_or(""), "hf_abc");
+  EXPECT_TRUE(c.options().offline);
+  EXPECT_EQ(c.options().metadata_timeout_s, 3);
+  EXPECT_EQ(c.options().stall_timeout_s, 10);
+}
+
 TEST(HubCacheLayout, PointersAreRelativeSymlinksIntoBlobsAndRefsHoldTheBareCommit) {
   ScratchDir dir("layout");
   HubCache cache(dir.str());

@@ -140,7 +140,7 @@ TEST_F(IntegrationHub, ResolveReturnsCommitAndFileList) {
   std::vector<std::string> paths;
   for (auto& f : info.files) paths.push_back(f.path);
   EXPECT_EQ(paths, (std::vector<std::string>{"big.bin", "config.json", "corrupt.bin", "model.safetensors",
-                                             "sub/dir/notes.txt"}));
+                                             "norange.bin", "sub/dir/notes.txt"}));
   EXPECT_EQ(c.resolve(kRepo, "dev").commit, kDev);
   EXPECT_TRUE(c.resolve("tether-test/gated").gated);
 }
@@ -217,6 +217,36 @@ TEST_F(IntegrationHub, PartialFileFromAnEarlierRunIsResumed) {
   auto cdn = hub.requests("cdn", sha);
   ASSERT_EQ(cdn.size(), 1u);
   EXPECT_EQ(header_value(cdn[0], "Range"), "bytes=100000-");
+}
+
+TEST_F(IntegrationHub, ServerIgnoringRangeRestartsTheFileFromZero) {
+  std::string data = pattern_bytes(48 * 1024, 4);
+  std::string sha = sha256_hex(data);
+  write_file(repo_dir() / "blobs" / (sha + ".incomplete"), std::string(1000, 'x'));  // would poison an append
+  auto c = client();
+  EXPECT_EQ(read_file(c.download_file(kRepo, "norange.bin")), data);
+  auto cdn = hub.requests("cdn", sha);
+  ASSERT_EQ(cdn.size(), 1u);
+  EXPECT_EQ(header_value(cdn[0], "Range"), "bytes=1000-");
+}
+
+TEST_F(IntegrationHub, ProgressGoesToStderrOnlyWhenAskedOrOnATerminal) {
+  HubOptions opt;
+  opt.endpoint = hub.hub_url();
+  opt.cache_root = dir.str();
+  opt.progress = ProgressMode::always;
+  HubClient loud(opt);
+  ::testing::internal::CaptureStderr();
+  loud.download_file(kRepo, "model.safetensors");
+  std::string drawn = ::testing::internal::GetCapturedStderr();
+  EXPECT_NE(drawn.find("model.safetensors"), std::string::npos) << drawn;
+  EXPECT_NE(drawn.find("100%"), std::string::npos) << drawn;
+
+  opt.progress = ProgressMode::automatic;  // stderr is captured into a file here: not a terminal
+  HubClient quiet(opt);
+  ::testing::internal::CaptureStderr();
+  quiet.download_file(kRepo, "big.bin");
+  EXPECT_EQ(::testing::internal::GetCapturedStderr(), "");
 }
 
 TEST_F(IntegrationHub, HashMismatchDeletesThePartialFile) {
@@ -315,6 +345,82 @@ TEST_F(IntegrationHub, FullSnapshotMatchesTheHubAndUnreachableHubFallsBackToTheC
   RepoInfo info = unreachable.resolve(kRepo);
   EXPECT_TRUE(info.from_cache);
   EXPECT_EQ(info.commit, kMain);
+}
+
+namespace {
+
+// A Python with huggingface_hub: TETHER_HF_PYTHON, else the oracle venv (tools/oracle/setup.sh creates it).
+std::optional<std::string> huggingface_hub_python() {
+  std::string py;
+  if (const char* v = std::getenv("TETHER_HF_PYTHON")) {
+    py = v;
+  } else {
+    const char* cache = std::getenv("TETHER_CACHE");
+    const char* home = std::getenv("HOME");
+    py = cache ? std::string(cache) : std::string(home ? home : "") + "/.cache/tether";
+    py += "/oracle/venv/bin/python";
+  }
+  if (!fs::exists(py)) return std::nullopt;
+  std::string probe = "'" + py + "' -c 'import huggingface_hub' >/dev/null 2>&1";
+  if (std::system(probe.c_str()) != 0) return std::nullopt;
+  return py;
+}
+
+// Runs hf_crosscheck.py and returns its JSON report.
+tether::JsonMap run_crosscheck(const std::string& python, const std::string& env, const std::string& cache_dir,
+                               const std::string& repo, const std::string& revision,
+                               const std::vector<std::string>& files, const fs::path& scratch) {
+  std::string cmd = env + " '" + python + "' '" + TETHER_SOURCE_DIR + "/tests/hub/hf_crosscheck.py' '" + cache_dir +
+                    "' '" + repo + "' '" + revision + "'";
+  for (const auto& f : files) cmd += " '" + f + "'";
+  fs::path out = scratch / "crosscheck.json";
+  cmd += " > '" + out.string() + "' 2> '" + (scratch / "crosscheck.err").string() + "'";
+  int rc = std::system(cmd.c_str());
+  EXPECT_EQ(rc, 0) << cmd << "\n" << read_file(scratch / "crosscheck.err");
+  if (rc != 0) return tether::JsonMap::object();
+  return tether::JsonMap::parse(read_file(out));
+}
+
+}  // namespace
+
+TEST_F(IntegrationHub, HuggingfaceHubAndTetherShareOneCache) {
+  auto python = huggingface_hub_python();
+  if (!python) GTEST_SKIP() << "no Python with huggingface_hub (set TETHER_HF_PYTHON or run tools/oracle/setup.sh)";
+  ScratchDir scratch("crosscheck");
+  std::string quiet = "HF_HUB_DISABLE_TELEMETRY=1 HF_HUB_DISABLE_PROGRESS_BARS=1 NO_PROXY='*' HF_TOKEN= ";
+
+  // Python downloads from the fake hub; Tether, offline, finds the very same files.
+  auto py = run_crosscheck(*python, quiet + "HF_ENDPOINT=" + hub.hub_url(), dir.str(), kRepo, "main",
+                           {"config.json", "model.safetensors"}, scratch.path());
+  ASSERT_TRUE(py.contains("paths"));
+  size_t requests_by_python = hub.log().size();
+  auto offline = client(std::nullopt, true);
+  EXPECT_EQ(offline.download_file(kRepo, "config.json"), py["paths"][0].get<std::string>());
+  EXPECT_EQ(offline.download_file(kRepo, "model.safetensors"), py["paths"][1].get<std::string>());
+
+  // Tether downloads more (a nested git file, another branch); Python, offline, finds them, and its cache
+  // scanner sees one consistent cache.
+  auto online = client();
+  std::string nested = online.download_file(kRepo, "sub/dir/notes.txt");
+  std::string dev_config = online.download_file(kRepo, "config.json", "dev");
+  EXPECT_GT(hub.log().size(), requests_by_python);
+  auto main_check = run_crosscheck(*python, quiet + "HF_HUB_OFFLINE=1 HF_ENDPOINT=http://127.0.0.1:1", dir.str(),
+                                   kRepo, "main", {"sub/dir/notes.txt", "model.safetensors"}, scratch.path());
+  ASSERT_TRUE(main_check.contains("paths"));
+  EXPECT_EQ(main_check["paths"][0].get<std::string>(), nested);
+  auto dev_check = run_crosscheck(*python, quiet + "HF_HUB_OFFLINE=1 HF_ENDPOINT=http://127.0.0.1:1", dir.str(),
+                                  kRepo, "dev", {"config.json"}, scratch.path());
+  ASSERT_TRUE(dev_check.contains("paths"));
+  EXPECT_EQ(dev_check["paths"][0].get<std::string>(), dev_config);
+  EXPECT_TRUE(dev_check["warnings"].empty()) << dev_check["warnings"].dump();
+  auto expected = tether::JsonMap::array();
+  auto blob = [&](const std::string& etag) { return (repo_dir() / "blobs" / etag).string(); };
+  expected.push_back({kMain, "config.json", blob(git_blob_sha1_hex(kConfig))});
+  expected.push_back({kMain, "model.safetensors", blob(sha256_hex(pattern_bytes(300 * 1024, 1)))});
+  expected.push_back({kMain, "sub/dir/notes.txt", blob(git_blob_sha1_hex("nested file\n"))});
+  expected.push_back({kDev, "config.json", blob(git_blob_sha1_hex("{\"type\": \"smolvla\", \"chunk_size\": 10}\n"))});
+  std::sort(expected.begin(), expected.end());
+  EXPECT_EQ(dev_check["cached"], expected);
 }
 
 TEST(IntegrationNoNetwork, ClosedPortGivesANetworkErrorNamingOfflineMode) {
