@@ -27,7 +27,8 @@ std::string env_or_empty(const char* name) {
   return v ? std::string(v) : std::string();
 }
 
-// "~" and "~/..." expand to $HOME, as os.path.expanduser does for the env values huggingface_hub reads.
+// "~" and "~/..." expand to $HOME, as os.path.expanduser does for the env values huggingface_hub
+// reads.
 std::string expand_user(const std::string& p) {
   if (p.empty() || p[0] != '~' || (p.size() > 1 && p[1] != '/')) return p;
   return env_or_empty("HOME") + p.substr(1);
@@ -65,11 +66,13 @@ std::string default_cache_root() {
 
 void validate_repo_id(const std::string& repo_id) {
   auto fail = [&](const std::string& why) {
-    throw HubError(HubErrorKind::invalid, "repo id '" + repo_id + "': " + why + " (expected 'org/name')");
+    throw HubError(HubErrorKind::invalid,
+                   "repo id '" + repo_id + "': " + why + " (expected 'org/name')");
   };
   if (repo_id.empty()) fail("empty");
   size_t slash = repo_id.find('/');
-  if (slash != std::string::npos && repo_id.find('/', slash + 1) != std::string::npos) fail("more than one '/'");
+  if (slash != std::string::npos && repo_id.find('/', slash + 1) != std::string::npos)
+    fail("more than one '/'");
   if (repo_id.find("--") != std::string::npos || repo_id.find("..") != std::string::npos)
     fail("'--' and '..' are not allowed");
   auto check_part = [&](const std::string& part) {
@@ -78,7 +81,8 @@ void validate_repo_id(const std::string& repo_id) {
       if (!(std::isalnum(static_cast<unsigned char>(c)) || c == '-' || c == '_' || c == '.'))
         fail(std::string("character '") + c + "' is not allowed");
     auto edge_ok = [](char c) { return std::isalnum(static_cast<unsigned char>(c)) || c == '_'; };
-    if (!edge_ok(part.front()) || !edge_ok(part.back())) fail("parts must start and end with a letter or digit");
+    if (!edge_ok(part.front()) || !edge_ok(part.back()))
+      fail("parts must start and end with a letter or digit");
   };
   if (slash == std::string::npos) {
     check_part(repo_id);
@@ -86,17 +90,21 @@ void validate_repo_id(const std::string& repo_id) {
     check_part(repo_id.substr(0, slash));
     check_part(repo_id.substr(slash + 1));
   }
-  if (repo_id.size() >= 4 && repo_id.compare(repo_id.size() - 4, 4, ".git") == 0) fail("must not end in '.git'");
+  if (repo_id.size() >= 4 && repo_id.compare(repo_id.size() - 4, 4, ".git") == 0)
+    fail("must not end in '.git'");
 }
 
 void validate_revision(const std::string& revision) {
   if (revision.empty() || revision[0] == '/' || has_bad_component(revision))
-    throw HubError(HubErrorKind::invalid, "revision '" + revision + "' is not a valid branch, tag or commit");
+    throw HubError(HubErrorKind::invalid,
+                   "revision '" + revision + "' is not a valid branch, tag or commit");
 }
 
 void validate_repo_path(const std::string& path) {
-  if (path.empty() || path[0] == '/' || path.find('\\') != std::string::npos || has_bad_component(path))
-    throw HubError(HubErrorKind::invalid, "file path '" + path + "' is not a relative path inside the repo");
+  if (path.empty() || path[0] == '/' || path.find('\\') != std::string::npos ||
+      has_bad_component(path))
+    throw HubError(HubErrorKind::invalid,
+                   "file path '" + path + "' is not a relative path inside the repo");
 }
 
 std::string repo_folder_name(const std::string& repo_id) {
@@ -107,7 +115,9 @@ std::string repo_folder_name(const std::string& repo_id) {
   return out;
 }
 
-std::string HubCache::repo_dir(const std::string& repo_id) const { return root_ + "/" + repo_folder_name(repo_id); }
+std::string HubCache::repo_dir(const std::string& repo_id) const {
+  return root_ + "/" + repo_folder_name(repo_id);
+}
 
 std::string HubCache::blob_path(const std::string& repo_id, const std::string& etag) const {
   return repo_dir(repo_id) + "/blobs/" + etag;
@@ -130,22 +140,26 @@ std::string HubCache::lock_path(const std::string& repo_id, const std::string& e
   return root_ + "/.locks/" + repo_folder_name(repo_id) + "/" + etag + ".lock";
 }
 
-std::optional<std::string> HubCache::resolve_commit(const std::string& repo_id, const std::string& revision) const {
+std::optional<std::string> HubCache::resolve_commit(const std::string& repo_id,
+                                                    const std::string& revision) const {
   if (is_sha1_hex(revision)) return revision;
   std::ifstream in(repo_dir(repo_id) + "/refs/" + revision, std::ios::binary);
   if (!in) return std::nullopt;
   std::string commit((std::istreambuf_iterator<char>(in)), std::istreambuf_iterator<char>());
   // huggingface_hub writes the hash bare; tolerate a trailing newline from hand-made caches.
-  while (!commit.empty() && (commit.back() == '\n' || commit.back() == '\r' || commit.back() == ' '))
+  while (!commit.empty() &&
+         (commit.back() == '\n' || commit.back() == '\r' || commit.back() == ' '))
     commit.pop_back();
   if (!is_sha1_hex(commit)) return std::nullopt;
   return commit;
 }
 
-void HubCache::write_ref(const std::string& repo_id, const std::string& revision, const std::string& commit) const {
+void HubCache::write_ref(const std::string& repo_id, const std::string& revision,
+                         const std::string& commit) const {
   if (revision == commit) return;
   fs::path ref = repo_dir(repo_id) + "/refs/" + revision;
-  if (resolve_commit(repo_id, revision) == commit) return;  // a read-only cache that is already right stays untouched
+  if (resolve_commit(repo_id, revision) == commit)
+    return;  // a read-only cache that is already right stays untouched
   std::error_code ec;
   fs::create_directories(ref.parent_path(), ec);
   if (ec) fs_fail("create directory", ref.parent_path().string(), ec);
@@ -166,13 +180,14 @@ void HubCache::write_ref(const std::string& repo_id, const std::string& revision
   }
 }
 
-void HubCache::link_pointer(const std::string& repo_id, const std::string& commit, const std::string& path,
-                            const std::string& etag) const {
+void HubCache::link_pointer(const std::string& repo_id, const std::string& commit,
+                            const std::string& path, const std::string& etag) const {
   fs::path pointer = pointer_path(repo_id, commit, path);
   std::error_code ec;
   fs::create_directories(pointer.parent_path(), ec);
   if (ec) fs_fail("create directory", pointer.parent_path().string(), ec);
-  // From snapshots/<commit>/<dirs...>/ back up to the repo folder: two levels plus one per directory in `path`.
+  // From snapshots/<commit>/<dirs...>/ back up to the repo folder: two levels plus one per
+  // directory in `path`.
   size_t ups = 2 + static_cast<size_t>(std::count(path.begin(), path.end(), '/'));
   std::string target;
   for (size_t i = 0; i < ups; ++i) target += "../";
@@ -187,15 +202,17 @@ void HubCache::link_pointer(const std::string& repo_id, const std::string& commi
   }
 }
 
-std::vector<std::string> HubCache::snapshot_files(const std::string& repo_id, const std::string& commit) const {
+std::vector<std::string> HubCache::snapshot_files(const std::string& repo_id,
+                                                  const std::string& commit) const {
   std::vector<std::string> out;
   fs::path dir = snapshot_dir(repo_id, commit);
   std::error_code ec;
   if (!fs::is_directory(dir, ec)) return out;
-  for (auto it = fs::recursive_directory_iterator(dir, ec); !ec && it != fs::recursive_directory_iterator();
-       it.increment(ec)) {
+  for (auto it = fs::recursive_directory_iterator(dir, ec);
+       !ec && it != fs::recursive_directory_iterator(); it.increment(ec)) {
     // A dangling pointer (blob deleted by a cache cleaner) is not a cached file.
-    if (fs::is_regular_file(it->path(), ec)) out.push_back(it->path().lexically_relative(dir).generic_string());
+    if (fs::is_regular_file(it->path(), ec))
+      out.push_back(it->path().lexically_relative(dir).generic_string());
   }
   std::sort(out.begin(), out.end());
   return out;

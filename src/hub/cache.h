@@ -1,7 +1,9 @@
-// The on-disk cache, laid out exactly as huggingface_hub lays it out so Python tools and Tether share files:
-//   <root>/models--{org}--{name}/blobs/<etag>                 file contents, named by ETag (sha256 or git sha1)
-//   <root>/models--{org}--{name}/snapshots/<commit>/<path>    relative symlink to ../../blobs/<etag>
-//   <root>/models--{org}--{name}/refs/<revision>              commit hash, no trailing newline
+// The on-disk cache, laid out exactly as huggingface_hub lays it out so Python tools and Tether
+// share files:
+//   <root>/models--{org}--{name}/blobs/<etag>                 file contents, named by ETag (sha256
+//   or git sha1) <root>/models--{org}--{name}/snapshots/<commit>/<path>    relative symlink to
+//   ../../blobs/<etag> <root>/models--{org}--{name}/refs/<revision>              commit hash, no
+//   trailing newline
 #pragma once
 
 #include <optional>
@@ -10,13 +12,15 @@
 
 namespace tether::hub {
 
-// HF_HUB_CACHE, else HUGGINGFACE_HUB_CACHE, else $HF_HOME/hub, else $XDG_CACHE_HOME/huggingface/hub, else
+// HF_HUB_CACHE, else HUGGINGFACE_HUB_CACHE, else $HF_HOME/hub, else
+// $XDG_CACHE_HOME/huggingface/hub, else
 // ~/.cache/huggingface/hub (the order huggingface_hub uses).
 std::string default_cache_root();
 // $HF_HOME, else $XDG_CACHE_HOME/huggingface, else ~/.cache/huggingface.
 std::string default_hf_home();
 
-// Throw HubError(invalid) for ids and paths huggingface_hub would also refuse, or that would escape the cache.
+// Throw HubError(invalid) for ids and paths huggingface_hub would also refuse, or that would escape
+// the cache.
 void validate_repo_id(const std::string& repo_id);
 void validate_revision(const std::string& revision);
 void validate_repo_path(const std::string& path);
@@ -33,18 +37,23 @@ class HubCache {
   std::string blob_path(const std::string& repo_id, const std::string& etag) const;
   std::string incomplete_path(const std::string& repo_id, const std::string& etag) const;
   std::string snapshot_dir(const std::string& repo_id, const std::string& commit) const;
-  std::string pointer_path(const std::string& repo_id, const std::string& commit, const std::string& path) const;
+  std::string pointer_path(const std::string& repo_id, const std::string& commit,
+                           const std::string& path) const;
   std::string lock_path(const std::string& repo_id, const std::string& etag) const;
 
-  // A 40-hex revision is its own commit; otherwise refs/<revision>. nullopt when nothing is recorded.
-  std::optional<std::string> resolve_commit(const std::string& repo_id, const std::string& revision) const;
+  // A 40-hex revision is its own commit; otherwise refs/<revision>. nullopt when nothing is
+  // recorded.
+  std::optional<std::string> resolve_commit(const std::string& repo_id,
+                                            const std::string& revision) const;
   // Records refs/<revision> = commit (atomically), unless the revision is the commit itself.
-  void write_ref(const std::string& repo_id, const std::string& revision, const std::string& commit) const;
+  void write_ref(const std::string& repo_id, const std::string& revision,
+                 const std::string& commit) const;
   // snapshots/<commit>/<path> -> relative path to blobs/<etag>, replacing whatever was there.
   void link_pointer(const std::string& repo_id, const std::string& commit, const std::string& path,
                     const std::string& etag) const;
   // Files under snapshots/<commit>, as repo paths with '/' separators, sorted.
-  std::vector<std::string> snapshot_files(const std::string& repo_id, const std::string& commit) const;
+  std::vector<std::string> snapshot_files(const std::string& repo_id,
+                                          const std::string& commit) const;
   // Writes the CACHEDIR.TAG backup tools look for, once.
   void tag_cache_dir() const;
 
@@ -52,8 +61,8 @@ class HubCache {
   std::string root_;
 };
 
-// Exclusive advisory lock (flock) on a file, created if needed: the same lock huggingface_hub takes under
-// <root>/.locks, so a Python download and ours do not write the same blob at once.
+// Exclusive advisory lock (flock) on a file, created if needed: the same lock huggingface_hub takes
+// under <root>/.locks, so a Python download and ours do not write the same blob at once.
 class FileLock {
  public:
   explicit FileLock(const std::string& path);

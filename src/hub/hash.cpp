@@ -28,7 +28,8 @@ MdCtx new_ctx(const EVP_MD* md) {
 std::string finish_hex(EVP_MD_CTX* ctx) {
   unsigned char digest[EVP_MAX_MD_SIZE];
   unsigned int n = 0;
-  if (EVP_DigestFinal_ex(ctx, digest, &n) != 1) throw Error(ErrorCode::internal, "hash: EVP_DigestFinal_ex failed");
+  if (EVP_DigestFinal_ex(ctx, digest, &n) != 1)
+    throw Error(ErrorCode::internal, "hash: EVP_DigestFinal_ex failed");
   static const char* digits = "0123456789abcdef";
   std::string out(2 * n, '0');
   for (unsigned int i = 0; i < n; ++i) {
@@ -43,11 +44,15 @@ void update_from_file(EVP_MD_CTX* ctx, const std::string& path) {
   if (!f) throw HubError(HubErrorKind::filesystem, path + ": cannot open for hashing");
   std::vector<unsigned char> buf(1 << 20);
   size_t n;
-  while ((n = std::fread(buf.data(), 1, buf.size(), f.get())) > 0) EVP_DigestUpdate(ctx, buf.data(), n);
-  if (std::ferror(f.get())) throw HubError(HubErrorKind::filesystem, path + ": read error while hashing");
+  while ((n = std::fread(buf.data(), 1, buf.size(), f.get())) > 0)
+    EVP_DigestUpdate(ctx, buf.data(), n);
+  if (std::ferror(f.get()))
+    throw HubError(HubErrorKind::filesystem, path + ": read error while hashing");
 }
 
-std::string git_header(uint64_t size) { return "blob " + std::to_string(size) + std::string(1, '\0'); }
+std::string git_header(uint64_t size) {
+  return "blob " + std::to_string(size) + std::string(1, '\0');
+}
 
 bool is_lower_hex(const std::string& s, size_t len) {
   if (s.size() != len) return false;
@@ -67,7 +72,9 @@ std::string sha256_file_hex(const std::string& path) {
 std::string git_blob_sha1_file_hex(const std::string& path) {
   std::error_code ec;
   auto size = std::filesystem::file_size(path, ec);
-  if (ec) throw HubError(HubErrorKind::filesystem, path + ": cannot stat for hashing (" + ec.message() + ")");
+  if (ec)
+    throw HubError(HubErrorKind::filesystem,
+                   path + ": cannot stat for hashing (" + ec.message() + ")");
   auto ctx = new_ctx(EVP_sha1());
   std::string header = git_header(size);
   EVP_DigestUpdate(ctx.get(), header.data(), header.size());

@@ -1,5 +1,6 @@
-// libcurl behind HttpClient: one reusable easy handle (keep-alive across a snapshot's files), header
-// capture, streaming sink, and failures classified so the caller can tell "no network" from "cut short".
+// libcurl behind HttpClient: one reusable easy handle (keep-alive across a snapshot's files),
+// header capture, streaming sink, and failures classified so the caller can tell "no network" from
+// "cut short".
 #include "hub/http.h"
 
 #include <curl/curl.h>
@@ -20,14 +21,16 @@ void global_init() {
 
 bool iequals(std::string_view a, std::string_view b) {
   return a.size() == b.size() && std::equal(a.begin(), a.end(), b.begin(), [](char x, char y) {
-           return std::tolower(static_cast<unsigned char>(x)) == std::tolower(static_cast<unsigned char>(y));
+           return std::tolower(static_cast<unsigned char>(x)) ==
+                  std::tolower(static_cast<unsigned char>(y));
          });
 }
 
 std::string trim(std::string_view s) {
   size_t b = 0, e = s.size();
   while (b < e && (s[b] == ' ' || s[b] == '\t')) ++b;
-  while (e > b && (s[e - 1] == ' ' || s[e - 1] == '\t' || s[e - 1] == '\r' || s[e - 1] == '\n')) --e;
+  while (e > b && (s[e - 1] == ' ' || s[e - 1] == '\t' || s[e - 1] == '\r' || s[e - 1] == '\n'))
+    --e;
   return std::string(s.substr(b, e - b));
 }
 
@@ -44,7 +47,8 @@ size_t on_header(char* data, size_t size, size_t count, void* user) {
     // A new status line (after a 1xx interim response) starts a fresh header set.
     t->response.headers.clear();
     size_t sp = line.find(' ');
-    t->response.status = sp == std::string_view::npos ? 0 : std::atol(std::string(line.substr(sp + 1, 3)).c_str());
+    t->response.status =
+        sp == std::string_view::npos ? 0 : std::atol(std::string(line.substr(sp + 1, 3)).c_str());
     return line.size();
   }
   size_t colon = line.find(':');
@@ -69,19 +73,24 @@ size_t on_body(char* data, size_t size, size_t count, void* user) {
 
 TransportFailure classify(CURLcode code) {
   switch (code) {
-    case CURLE_OK: return TransportFailure::none;
+    case CURLE_OK:
+      return TransportFailure::none;
     case CURLE_COULDNT_RESOLVE_HOST:
     case CURLE_COULDNT_RESOLVE_PROXY:
     case CURLE_COULDNT_CONNECT:
-    case CURLE_SSL_CONNECT_ERROR: return TransportFailure::connect;
-    case CURLE_OPERATION_TIMEDOUT: return TransportFailure::timeout;
+    case CURLE_SSL_CONNECT_ERROR:
+      return TransportFailure::connect;
+    case CURLE_OPERATION_TIMEDOUT:
+      return TransportFailure::timeout;
     case CURLE_PARTIAL_FILE:
     case CURLE_RECV_ERROR:
     case CURLE_SEND_ERROR:
     case CURLE_GOT_NOTHING:
     case CURLE_HTTP2:
-    case CURLE_HTTP2_STREAM: return TransportFailure::broken;
-    default: return TransportFailure::other;
+    case CURLE_HTTP2_STREAM:
+      return TransportFailure::broken;
+    default:
+      return TransportFailure::other;
   }
 }
 
@@ -175,7 +184,8 @@ std::string url_join(const std::string& base, const std::string& location) {
 std::string url_origin(const std::string& url) {
   CurlUrl u;
   if (curl_url_set(u.h, CURLUPART_URL, url.c_str(), 0) != CURLUE_OK) return {};
-  std::string scheme = u.get(CURLUPART_SCHEME), host = url_host(url), port = u.get(CURLUPART_PORT, CURLU_DEFAULT_PORT);
+  std::string scheme = u.get(CURLUPART_SCHEME), host = url_host(url),
+              port = u.get(CURLUPART_PORT, CURLU_DEFAULT_PORT);
   if (scheme.empty() || host.empty()) return {};
   return scheme + "://" + host + ":" + port;
 }
@@ -184,7 +194,8 @@ std::string url_host(const std::string& url) {
   CurlUrl u;
   if (curl_url_set(u.h, CURLUPART_URL, url.c_str(), 0) != CURLUE_OK) return {};
   std::string host = u.get(CURLUPART_HOST);
-  std::transform(host.begin(), host.end(), host.begin(), [](unsigned char ch) { return std::tolower(ch); });
+  std::transform(host.begin(), host.end(), host.begin(),
+                 [](unsigned char ch) { return std::tolower(ch); });
   return host;
 }
 
@@ -192,7 +203,8 @@ std::string url_quote(const std::string& s, bool keep_slash) {
   static const char* digits = "0123456789ABCDEF";
   std::string out;
   for (unsigned char ch : s) {
-    if (std::isalnum(ch) || ch == '-' || ch == '_' || ch == '.' || ch == '~' || (keep_slash && ch == '/')) {
+    if (std::isalnum(ch) || ch == '-' || ch == '_' || ch == '.' || ch == '~' ||
+        (keep_slash && ch == '/')) {
       out += static_cast<char>(ch);
     } else {
       out += '%';

@@ -1,5 +1,5 @@
-// A small blocking HTTP client over libcurl for the hub: no automatic redirects (the caller decides where
-// credentials may go), headers kept verbatim, bodies either buffered or streamed to a sink.
+// A small blocking HTTP client over libcurl for the hub: no automatic redirects (the caller decides
+// where credentials may go), headers kept verbatim, bodies either buffered or streamed to a sink.
 #pragma once
 
 #include <functional>
@@ -19,16 +19,18 @@ struct HttpResponse {
 
   // Case-insensitive lookup; the last occurrence wins.
   std::optional<std::string> header(std::string_view name) const;
-  bool is_redirect() const { return status >= 300 && status < 400 && header("Location").has_value(); }
+  bool is_redirect() const {
+    return status >= 300 && status < 400 && header("Location").has_value();
+  }
 };
 
 // Why a request produced no complete response.
 enum class TransportFailure {
   none,
-  connect,   // DNS or TCP/TLS connect failed: nothing was exchanged
+  connect,  // DNS or TCP/TLS connect failed: nothing was exchanged
   timeout,
-  broken,    // the connection dropped or the transfer ended short
-  aborted,   // the sink asked to stop
+  broken,   // the connection dropped or the transfer ended short
+  aborted,  // the sink asked to stop
   other,
 };
 
@@ -43,8 +45,8 @@ struct HttpRequest {
   std::string url;
   std::vector<std::string> headers;  // "Name: value"
   long connect_timeout_s = 10;
-  long timeout_s = 0;           // whole request; 0 = unlimited (downloads), used for metadata calls
-  long stall_timeout_s = 0;     // abort when under 1 byte/s for this long; 0 = never
+  long timeout_s = 0;        // whole request; 0 = unlimited (downloads), used for metadata calls
+  long stall_timeout_s = 0;  // abort when under 1 byte/s for this long; 0 = never
   // Receives the body as it arrives; the response's status and headers are already filled in.
   // Returning false aborts the transfer.
   std::function<bool(const HttpResponse& head, const char* data, size_t n)> sink;
@@ -64,9 +66,11 @@ class HttpClient {
   std::unique_ptr<Impl> impl_;
 };
 
-// Resolves a Location header against the URL it came from (absolute, host-relative or path-relative).
+// Resolves a Location header against the URL it came from (absolute, host-relative or
+// path-relative).
 std::string url_join(const std::string& base, const std::string& location);
-// "scheme://host:port" with the host lower-cased and the default port filled in; empty if unparsable.
+// "scheme://host:port" with the host lower-cased and the default port filled in; empty if
+// unparsable.
 std::string url_origin(const std::string& url);
 // Lower-cased host name of a URL; empty if unparsable.
 std::string url_host(const std::string& url);

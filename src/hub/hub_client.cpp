@@ -1,4 +1,5 @@
-// HubClient: the HEAD-then-GET download protocol of the Hugging Face Hub, written into the shared cache.
+// HubClient: the HEAD-then-GET download protocol of the Hugging Face Hub, written into the shared
+// cache.
 #include "hub/hub_client.h"
 
 #include <unistd.h>
@@ -48,7 +49,8 @@ long env_seconds(const char* name, long fallback) {
 // W/"abc" and "abc" both become abc: the form used as the blob's file name.
 std::string normalize_etag(std::string etag) {
   if (etag.rfind("W/", 0) == 0) etag = etag.substr(2);
-  if (etag.size() >= 2 && etag.front() == '"' && etag.back() == '"') etag = etag.substr(1, etag.size() - 2);
+  if (etag.size() >= 2 && etag.front() == '"' && etag.back() == '"')
+    etag = etag.substr(1, etag.size() - 2);
   return etag;
 }
 
@@ -134,13 +136,14 @@ class ProgressBar {
     done_ += n;
     if (!enabled_) return;
     auto now = std::chrono::steady_clock::now();
-    if (drawn_ && now - last_ < std::chrono::milliseconds(100) && !(total_ && done_ == *total_)) return;
+    if (drawn_ && now - last_ < std::chrono::milliseconds(100) && !(total_ && done_ == *total_))
+      return;
     last_ = now;
     drawn_ = true;
     double mb = 1024.0 * 1024.0;
     if (total_ && *total_ > 0)
-      std::fprintf(stderr, "\r%-40s %8.1f / %.1f MiB %3d%%", name_.c_str(), done_ / mb, *total_ / mb,
-                   static_cast<int>(100.0 * done_ / *total_));
+      std::fprintf(stderr, "\r%-40s %8.1f / %.1f MiB %3d%%", name_.c_str(), done_ / mb,
+                   *total_ / mb, static_cast<int>(100.0 * done_ / *total_));
     else
       std::fprintf(stderr, "\r%-40s %8.1f MiB", name_.c_str(), done_ / mb);
     std::fflush(stderr);
@@ -166,7 +169,8 @@ std::optional<std::string> token_from_env() {
   if (path.empty()) path = default_hf_home() + "/token";
   std::ifstream in(path, std::ios::binary);
   if (!in) return std::nullopt;
-  std::string v = strip(std::string((std::istreambuf_iterator<char>(in)), std::istreambuf_iterator<char>()));
+  std::string v =
+      strip(std::string((std::istreambuf_iterator<char>(in)), std::istreambuf_iterator<char>()));
   if (v.empty()) return std::nullopt;
   return v;
 }
@@ -188,7 +192,8 @@ bool path_matches(const std::string& path, const std::string& pattern) {
 
 bool path_matches_any(const std::string& path, const std::vector<std::string>& patterns) {
   if (patterns.empty()) return true;
-  return std::any_of(patterns.begin(), patterns.end(), [&](const std::string& p) { return path_matches(path, p); });
+  return std::any_of(patterns.begin(), patterns.end(),
+                     [&](const std::string& p) { return path_matches(path, p); });
 }
 
 struct HubClient::Net {
@@ -199,7 +204,8 @@ HubClient::HubClient(HubOptions options)
     : options_(std::move(options)),
       cache_(options_.cache_root.empty() ? default_cache_root() : options_.cache_root),
       net_(std::make_unique<Net>()) {
-  while (!options_.endpoint.empty() && options_.endpoint.back() == '/') options_.endpoint.pop_back();
+  while (!options_.endpoint.empty() && options_.endpoint.back() == '/')
+    options_.endpoint.pop_back();
   options_.cache_root = cache_.root();
 }
 
@@ -221,7 +227,8 @@ HubClient HubClient::from_env() {
 
 namespace {
 
-// Hosts the token may travel to: the endpoint itself (same scheme, host and port) and the public hub's names.
+// Hosts the token may travel to: the endpoint itself (same scheme, host and port) and the public
+// hub's names.
 bool is_hub_url(const std::string& url, const std::string& endpoint) {
   if (url_origin(url) == url_origin(endpoint)) return true;
   std::string host = url_host(url);
@@ -233,14 +240,16 @@ std::string describe_repo(const std::string& repo_id, const std::string& revisio
 }
 
 // Turns a hub error response into a HubError kind and a one-line message.
-MetadataFailure http_failure(const HttpResponse& r, const std::string& url, const std::string& endpoint,
-                             const std::string& repo_id, const std::string& revision,
-                             const std::optional<std::string>& file, bool have_token) {
+MetadataFailure http_failure(const HttpResponse& r, const std::string& url,
+                             const std::string& endpoint, const std::string& repo_id,
+                             const std::string& revision, const std::optional<std::string>& file,
+                             bool have_token) {
   MetadataFailure f;
   std::string code = r.header("X-Error-Code").value_or("");
   std::string server_msg = r.header("X-Error-Message").value_or("");
   std::string status = "HTTP " + std::to_string(r.status);
-  std::string what = file ? "'" + *file + "' in " + describe_repo(repo_id, revision) : describe_repo(repo_id, revision);
+  std::string what = file ? "'" + *file + "' in " + describe_repo(repo_id, revision)
+                          : describe_repo(repo_id, revision);
   std::string repo_page = endpoint + "/" + repo_id;
   if (code == "RevisionNotFound") {
     f.kind = HubErrorKind::revision_not_found;
@@ -248,13 +257,16 @@ MetadataFailure http_failure(const HttpResponse& r, const std::string& url, cons
   } else if (code == "EntryNotFound" || (r.status == 404 && file && code.empty())) {
     f.kind = HubErrorKind::entry_not_found;
     f.message = "file " + what + " not found on the hub (" + status + ")";
-  } else if (code == "GatedRepo" || ((r.status == 401 || r.status == 403) && code != "RepoNotFound")) {
+  } else if (code == "GatedRepo" ||
+             ((r.status == 401 || r.status == 403) && code != "RepoNotFound")) {
     f.kind = HubErrorKind::gated;
     f.cache_may_answer = true;
-    f.message = what + ": access denied (" + status + ", gated or private repo); " +
-                (have_token ? "the token in HF_TOKEN has no access: accept the license at " + repo_page +
-                                  " with that account, or use another token"
-                            : "set HF_TOKEN to a token of an account that accepted the license at " + repo_page);
+    f.message =
+        what + ": access denied (" + status + ", gated or private repo); " +
+        (have_token
+             ? "the token in HF_TOKEN has no access: accept the license at " + repo_page +
+                   " with that account, or use another token"
+             : "set HF_TOKEN to a token of an account that accepted the license at " + repo_page);
   } else if (code == "RepoNotFound" || r.status == 404) {
     f.kind = HubErrorKind::repo_not_found;
     f.cache_may_answer = true;
@@ -289,25 +301,29 @@ class Session {
 
   std::vector<std::string> auth_headers(const std::string& url) const {
     std::vector<std::string> h;
-    if (opt_.token && is_hub_url(url, opt_.endpoint)) h.push_back("Authorization: Bearer " + *opt_.token);
+    if (opt_.token && is_hub_url(url, opt_.endpoint))
+      h.push_back("Authorization: Bearer " + *opt_.token);
     return h;
   }
 
   std::string cache_hint() const { return "cache at " + cache_.root(); }
 
-  // HEAD on /resolve/, following redirects that stay on the hub (a renamed repo) and stopping at one that
-  // leaves it: the LFS metadata is on that redirect response, and the token must not follow it.
-  std::variant<FileMetadata, MetadataFailure> file_metadata(const std::string& repo_id, const std::string& path,
+  // HEAD on /resolve/, following redirects that stay on the hub (a renamed repo) and stopping at
+  // one that leaves it: the LFS metadata is on that redirect response, and the token must not
+  // follow it.
+  std::variant<FileMetadata, MetadataFailure> file_metadata(const std::string& repo_id,
+                                                            const std::string& path,
                                                             const std::string& revision) {
-    std::string url = opt_.endpoint + "/" + repo_id + "/resolve/" + url_quote(revision, false) + "/" +
-                      url_quote(path, true);
+    std::string url = opt_.endpoint + "/" + repo_id + "/resolve/" + url_quote(revision, false) +
+                      "/" + url_quote(path, true);
     HttpResult res;
     for (int hop = 0;; ++hop) {
       HttpRequest req;
       req.method = "HEAD";
       req.url = url;
       req.headers = auth_headers(url);
-      req.headers.push_back("Accept-Encoding: identity");  // the size we read must be the file's, not a gzip's
+      // The size read from this response must be the file's, not that of a compressed body.
+      req.headers.push_back("Accept-Encoding: identity");
       req.connect_timeout_s = opt_.metadata_timeout_s;
       req.timeout_s = opt_.metadata_timeout_s;
       res = http_.perform(req);
@@ -323,15 +339,18 @@ class Session {
     const HttpResponse& r = res.response;
     FileMetadata m;
     m.commit = r.header("X-Repo-Commit").value_or("");
-    if (m.commit.empty()) {
+    if (!is_sha1_hex(m.commit)) {
+      // It names a cache folder, so anything but a commit hash is refused.
       MetadataFailure f;
       f.cache_may_answer = true;
-      f.message = url + " answered without an X-Repo-Commit header: HF_ENDPOINT (" + opt_.endpoint +
+      f.message = url + " answered without a valid X-Repo-Commit header: HF_ENDPOINT (" +
+                  opt_.endpoint +
                   ") does not look like a Hugging Face hub, or a proxy rewrote the response";
       return f;
     }
     m.etag = normalize_etag(r.header("X-Linked-Etag").value_or(r.header("ETag").value_or("")));
-    if (m.etag.empty() || m.etag.find('/') != std::string::npos || m.etag == "." || m.etag == "..") {
+    if (m.etag.empty() || m.etag.find('/') != std::string::npos || m.etag == "." ||
+        m.etag == "..") {
       MetadataFailure f;
       f.cache_may_answer = true;
       f.message = url + " answered without a usable ETag, so the file cannot be cached or verified";
@@ -355,7 +374,8 @@ class Session {
     return pointer;
   }
 
-  std::string download_file(const std::string& repo_id, const std::string& path, const std::string& revision) {
+  std::string download_file(const std::string& repo_id, const std::string& path,
+                            const std::string& revision) {
     validate_repo_id(repo_id);
     validate_repo_path(path);
     validate_revision(revision);
@@ -373,8 +393,9 @@ class Session {
       if (f->cache_may_answer)
         if (auto p = cached_pointer(repo_id, path, revision)) return *p;
       if (f->kind == HubErrorKind::network)
-        throw HubError(HubErrorKind::network, f->message + ", and " + what + " is not in the " + cache_hint() +
-                                                  "; check the network, or set HF_HUB_OFFLINE=1 to use only the cache");
+        throw HubError(HubErrorKind::network,
+                       f->message + ", and " + what + " is not in the " + cache_hint() +
+                           "; check the network, or set HF_HUB_OFFLINE=1 to use only the cache");
       throw HubError(f->kind, f->message);
     }
     const FileMetadata& m = std::get<FileMetadata>(meta_or_fail);
@@ -390,7 +411,8 @@ class Session {
     }
     fs::create_directories(cache_.repo_dir(repo_id) + "/blobs", ec);
     if (ec)
-      throw HubError(HubErrorKind::filesystem, cache_.repo_dir(repo_id) + "/blobs: cannot create (" + ec.message() + ")");
+      throw HubError(HubErrorKind::filesystem,
+                     cache_.repo_dir(repo_id) + "/blobs: cannot create (" + ec.message() + ")");
     cache_.tag_cache_dir();
     cache_.write_ref(repo_id, revision, m.commit);
     FileLock lock(cache_.lock_path(repo_id, m.etag));
@@ -400,7 +422,8 @@ class Session {
     return pointer;
   }
 
-  // GETs the bytes into blobs/<etag>.incomplete (resuming what is there), verifies, renames into blobs/<etag>.
+  // GETs the bytes into blobs/<etag>.incomplete (resuming what is there), verifies, renames into
+  // blobs/<etag>.
   void fetch_blob(const std::string& repo_id, const std::string& path, const FileMetadata& m) {
     std::string incomplete = cache_.incomplete_path(repo_id, m.etag);
     std::string blob = cache_.blob_path(repo_id, m.etag);
@@ -430,12 +453,9 @@ class Session {
       bool started = false;
       bool write_failed = false;
       uint64_t got = 0;
-      std::string error_body;
       req.sink = [&](const HttpResponse& head, const char* data, size_t n) {
-        if (head.status != 200 && head.status != 206) {
-          if (error_body.size() < 4096) error_body.append(data, std::min<size_t>(n, 4096));
-          return true;
-        }
+        // Bodies of redirects and errors are not file content; the status tells what happened.
+        if (head.status != 200 && head.status != 206) return true;
         if (!started) {
           started = true;
           if (head.status == 200 && have > 0) {
@@ -458,12 +478,14 @@ class Session {
       };
       HttpResult res = http_.perform(req);
       std::fflush(out);
-      if (write_failed) throw HubError(HubErrorKind::filesystem, incomplete + ": write failed (disk full?)");
+      if (write_failed)
+        throw HubError(HubErrorKind::filesystem, incomplete + ": write failed (disk full?)");
       const HttpResponse& r = res.response;
       if (res.failure == TransportFailure::none) {
         if (r.is_redirect() && ++hops < kMaxRedirects) {
           std::string target = url_join(url, *r.header("Location"));
-          if (url_origin(target) != url_origin(url)) send_auth = send_auth && is_hub_url(target, opt_.endpoint);
+          if (url_origin(target) != url_origin(url))
+            send_auth = send_auth && is_hub_url(target, opt_.endpoint);
           url = target;
           continue;
         }
@@ -478,20 +500,25 @@ class Session {
           continue;
         }
         if (r.status >= 300 && !is_hub_url(url, opt_.endpoint))
-          throw HubError(HubErrorKind::server, "download of " + what + " from " + url_origin(url) + " failed (HTTP " +
-                                                   std::to_string(r.status) +
-                                                   "); its signed link may have expired, run again");
+          throw HubError(HubErrorKind::server,
+                         "download of " + what + " from " + url_origin(url) + " failed (HTTP " +
+                             std::to_string(r.status) +
+                             "); its signed link may have expired, run again");
         if (r.status >= 300) {
-          auto f = http_failure(r, url, opt_.endpoint, repo_id, m.commit, path, opt_.token && send_auth);
+          auto f =
+              http_failure(r, url, opt_.endpoint, repo_id, m.commit, path, opt_.token && send_auth);
           throw HubError(f.kind, f.message);
         }
         break;  // complete
       }
-      // Broken or stalled transfer: resume from what we have; give up after max_retries without progress.
+      // Broken or stalled transfer: resume from what we have; give up after max_retries without
+      // progress.
       if (got > 0) retries_left = opt_.max_retries;
-      if (--retries_left < 0 || res.failure == TransportFailure::aborted || res.failure == TransportFailure::other)
-        throw HubError(HubErrorKind::network, "download of " + what + " from " + url_origin(url) + " failed after " +
-                                                  std::to_string(have) + " bytes (" + res.error +
+      if (--retries_left < 0 || res.failure == TransportFailure::aborted ||
+          res.failure == TransportFailure::other)
+        throw HubError(HubErrorKind::network, "download of " + what + " from " + url_origin(url) +
+                                                  " failed after " + std::to_string(have) +
+                                                  " bytes (" + res.error +
                                                   "); run again to resume from " + incomplete);
       if (got == 0) std::this_thread::sleep_for(std::chrono::milliseconds(500));
     }
@@ -499,15 +526,20 @@ class Session {
 
     auto corrupt = [&](const std::string& why) {
       fs::remove(incomplete, ec);
-      throw HubError(HubErrorKind::corrupt, "download of " + what + " is corrupt: " + why +
-                                                "; the partial file was deleted, run again to download it anew");
+      throw HubError(HubErrorKind::corrupt,
+                     "download of " + what + " is corrupt: " + why +
+                         "; the partial file was deleted, run again to download it anew");
     };
     if (m.size && have != *m.size)
-      corrupt("got " + std::to_string(have) + " bytes, the hub announced " + std::to_string(*m.size));
+      corrupt("got " + std::to_string(have) + " bytes, the hub announced " +
+              std::to_string(*m.size));
     EtagCheck check = verify_file_against_etag(incomplete, m.etag);
-    if (!check.ok) corrupt(check.algorithm + " is " + check.actual + ", the hub's ETag says " + m.etag);
+    if (!check.ok)
+      corrupt(check.algorithm + " is " + check.actual + ", the hub's ETag says " + m.etag);
     fs::rename(incomplete, blob, ec);
-    if (ec) throw HubError(HubErrorKind::filesystem, blob + ": cannot move the download into place (" + ec.message() + ")");
+    if (ec)
+      throw HubError(HubErrorKind::filesystem,
+                     blob + ": cannot move the download into place (" + ec.message() + ")");
   }
 
   RepoInfo resolve(const std::string& repo_id, const std::string& revision) {
@@ -515,9 +547,10 @@ class Session {
     validate_revision(revision);
     if (opt_.offline)
       return from_cache(repo_id, revision, HubErrorKind::not_cached,
-                        "HF_HUB_OFFLINE is set and " + describe_repo(repo_id, revision) + " is not in the " +
-                            cache_hint());
-    std::string url = opt_.endpoint + "/api/models/" + repo_id + "/revision/" + url_quote(revision, false);
+                        "HF_HUB_OFFLINE is set and " + describe_repo(repo_id, revision) +
+                            " is not in the " + cache_hint());
+    std::string url =
+        opt_.endpoint + "/api/models/" + repo_id + "/revision/" + url_quote(revision, false);
     HttpResult res;
     for (int hop = 0;; ++hop) {
       HttpRequest req;
@@ -529,7 +562,8 @@ class Session {
       if (res.failure != TransportFailure::none) {
         auto f = transport_failure(res, url);
         return from_cache(repo_id, revision, HubErrorKind::network,
-                          f.message + ", and " + describe_repo(repo_id, revision) + " is not in the " + cache_hint() +
+                          f.message + ", and " + describe_repo(repo_id, revision) +
+                              " is not in the " + cache_hint() +
                               "; check the network, or set HF_HUB_OFFLINE=1 to use only the cache");
       }
       if (!res.response.is_redirect() || hop + 1 >= kMaxRedirects) break;
@@ -539,8 +573,11 @@ class Session {
     }
     const HttpResponse& r = res.response;
     if (r.status != 200) {
-      auto f = http_failure(r, url, opt_.endpoint, repo_id, revision, std::nullopt, opt_.token.has_value());
-      if (f.kind == HubErrorKind::server) return from_cache(repo_id, revision, f.kind, f.message);
+      auto f = http_failure(r, url, opt_.endpoint, repo_id, revision, std::nullopt,
+                            opt_.token.has_value());
+      // As huggingface_hub does: a cached copy still answers when the hub refuses (token gone,
+      // hub down); only a revision the hub says does not exist is final.
+      if (f.cache_may_answer) return from_cache(repo_id, revision, f.kind, f.message);
       throw HubError(f.kind, f.message);
     }
     RepoInfo info;
@@ -555,13 +592,16 @@ class Session {
     }
     try {
       info.commit = json_get<std::string>(j, "sha", where);
-      if (!is_sha1_hex(info.commit)) throw HubError(HubErrorKind::server, where + ": 'sha' is not a commit hash");
-      if (auto g = j.find("gated"); g != j.end()) info.gated = g->is_string() || (g->is_boolean() && g->get<bool>());
+      if (!is_sha1_hex(info.commit))
+        throw HubError(HubErrorKind::server, where + ": 'sha' is not a commit hash");
+      if (auto g = j.find("gated"); g != j.end())
+        info.gated = g->is_string() || (g->is_boolean() && g->get<bool>());
       if (auto s = j.find("siblings"); s != j.end() && s->is_array()) {
         for (const auto& e : *s) {
           RepoFile f;
           f.path = json_get<std::string>(e, "rfilename", where + ": siblings[]");
-          if (auto sz = e.find("size"); sz != e.end() && sz->is_number_unsigned()) f.size = sz->get<uint64_t>();
+          if (auto sz = e.find("size"); sz != e.end() && sz->is_number_unsigned())
+            f.size = sz->get<uint64_t>();
           info.files.push_back(std::move(f));
         }
       }
@@ -577,7 +617,8 @@ class Session {
                       const std::string& message) const {
     auto commit = cache_.resolve_commit(repo_id, revision);
     std::error_code ec;
-    if (!commit || !fs::is_directory(cache_.snapshot_dir(repo_id, *commit), ec)) throw HubError(kind, message);
+    if (!commit || !fs::is_directory(cache_.snapshot_dir(repo_id, *commit), ec))
+      throw HubError(kind, message);
     RepoInfo info;
     info.repo_id = repo_id;
     info.revision = revision;
@@ -592,20 +633,23 @@ class Session {
     RepoInfo info = resolve(repo_id, revision);
     std::string dir = cache_.snapshot_dir(repo_id, info.commit);
     if (info.from_cache) {
-      // Without the hub's file list we cannot tell a complete snapshot from a partial one; insist on at
-      // least one file matching what was asked for.
-      bool any = std::any_of(info.files.begin(), info.files.end(),
-                             [&](const RepoFile& f) { return path_matches_any(f.path, allow_patterns); });
+      // Without the hub's file list we cannot tell a complete snapshot from a partial one; insist
+      // on at least one file matching what was asked for.
+      bool any = std::any_of(info.files.begin(), info.files.end(), [&](const RepoFile& f) {
+        return path_matches_any(f.path, allow_patterns);
+      });
       if (!any)
-        throw HubError(opt_.offline ? HubErrorKind::not_cached : HubErrorKind::network,
-                       "the cached snapshot " + dir + " of " + describe_repo(repo_id, revision) +
-                           " holds no file matching the requested patterns" +
-                           (opt_.offline ? " and HF_HUB_OFFLINE is set" : " and the hub is unreachable"));
+        throw HubError(
+            opt_.offline ? HubErrorKind::not_cached : HubErrorKind::network,
+            "the cached snapshot " + dir + " of " + describe_repo(repo_id, revision) +
+                " holds no file matching the requested patterns" +
+                (opt_.offline ? " and HF_HUB_OFFLINE is set" : " and the hub is unreachable"));
       return dir;
     }
     std::error_code ec;
     fs::create_directories(dir, ec);
-    if (ec) throw HubError(HubErrorKind::filesystem, dir + ": cannot create (" + ec.message() + ")");
+    if (ec)
+      throw HubError(HubErrorKind::filesystem, dir + ": cannot create (" + ec.message() + ")");
     cache_.write_ref(repo_id, revision, info.commit);
     for (const auto& f : info.files)
       if (path_matches_any(f.path, allow_patterns)) download_file(repo_id, f.path, info.commit);
@@ -620,7 +664,8 @@ class Session {
 
 }  // namespace
 
-std::optional<std::string> HubClient::cached_snapshot(const std::string& repo_id, const std::string& revision) const {
+std::optional<std::string> HubClient::cached_snapshot(const std::string& repo_id,
+                                                      const std::string& revision) const {
   validate_repo_id(repo_id);
   validate_revision(revision);
   auto commit = cache_.resolve_commit(repo_id, revision);

@@ -1,5 +1,6 @@
-// Hugging Face Hub client: resolves revisions, downloads files and snapshots into the huggingface_hub cache
-// layout (shared with Python tools), resumes partial downloads and verifies them against their ETags.
+// Hugging Face Hub client: resolves revisions, downloads files and snapshots into the
+// huggingface_hub cache layout (shared with Python tools), resumes partial downloads and verifies
+// them against their ETags.
 #pragma once
 
 #include <cstdint>
@@ -14,8 +15,8 @@
 namespace tether::hub {
 
 struct RepoFile {
-  std::string path;               // '/'-separated path inside the repo
-  std::optional<uint64_t> size;   // when the listing carries it
+  std::string path;              // '/'-separated path inside the repo
+  std::optional<uint64_t> size;  // when the listing carries it
 };
 
 struct RepoInfo {
@@ -32,23 +33,26 @@ enum class ProgressMode { automatic, always, never };  // automatic: only when s
 struct HubOptions {
   std::string endpoint = "https://huggingface.co";  // no trailing '/'
   std::string cache_root;                           // empty: default_cache_root()
-  std::optional<std::string> token;                 // sent as "Authorization: Bearer" to the hub only
-  bool offline = false;                             // never touch the network; answer from the cache
+  std::optional<std::string> token;  // sent as "Authorization: Bearer" to the hub only
+  bool offline = false;              // never touch the network; answer from the cache
   ProgressMode progress = ProgressMode::automatic;
   long metadata_timeout_s = 10;  // HEAD and API calls (HF_HUB_ETAG_TIMEOUT)
-  long stall_timeout_s = 10;     // a download with no data for this long is retried (HF_HUB_DOWNLOAD_TIMEOUT)
-  int max_retries = 5;           // re-tries of a broken transfer with no progress in between
+  long stall_timeout_s =
+      10;  // a download with no data for this long is retried (HF_HUB_DOWNLOAD_TIMEOUT)
+  int max_retries = 5;  // re-tries of a broken transfer with no progress in between
 };
 
-// HF_TOKEN, else HUGGING_FACE_HUB_TOKEN, else the file at HF_TOKEN_PATH or $HF_HOME/token; blank = none.
+// HF_TOKEN, else HUGGING_FACE_HUB_TOKEN, else the file at HF_TOKEN_PATH or $HF_HOME/token; blank =
+// none.
 std::optional<std::string> token_from_env();
 // HF_HUB_OFFLINE / TRANSFORMERS_OFFLINE set to 1, ON, YES or TRUE.
 bool offline_from_env();
 
-// fnmatch-style (case-sensitive; '*' also crosses '/'), as huggingface_hub filters snapshot files; a pattern
-// ending in '/' matches everything below that folder.
+// fnmatch-style (case-sensitive; '*' also crosses '/'), as huggingface_hub filters snapshot files;
+// a pattern ending in '/' matches everything below that folder.
 bool path_matches(const std::string& path, const std::string& pattern);
-bool path_matches_any(const std::string& path, const std::vector<std::string>& patterns);  // empty: all
+bool path_matches_any(const std::string& path,
+                      const std::vector<std::string>& patterns);  // empty: all
 
 // Not thread-safe: one client per thread (it keeps one connection alive across a snapshot's files).
 class HubClient {
@@ -62,7 +66,8 @@ class HubClient {
   // HF_HUB_ETAG_TIMEOUT and HF_HUB_DOWNLOAD_TIMEOUT.
   static HubClient from_env();
 
-  // The commit a revision points at and the files it holds (API call; offline or unreachable: the cache).
+  // The commit a revision points at and the files it holds (API call; offline or unreachable: the
+  // cache).
   RepoInfo resolve(const std::string& repo_id, const std::string& revision = "main");
   // One file into the cache; returns its snapshots/<commit>/<path> path.
   std::string download_file(const std::string& repo_id, const std::string& path,
@@ -71,7 +76,8 @@ class HubClient {
   std::string snapshot_download(const std::string& repo_id, const std::string& revision = "main",
                                 const std::vector<std::string>& allow_patterns = {});
   // The cached snapshots/<commit> folder for a revision, without any network access.
-  std::optional<std::string> cached_snapshot(const std::string& repo_id, const std::string& revision = "main") const;
+  std::optional<std::string> cached_snapshot(const std::string& repo_id,
+                                             const std::string& revision = "main") const;
 
   const HubOptions& options() const { return options_; }
   const HubCache& cache() const { return cache_; }

@@ -1,4 +1,5 @@
-// Errors from the hub layer: a tether::Error whose kind says which of the hub's failure modes happened.
+// Errors from the hub layer: a tether::Error whose kind says which of the hub's failure modes
+// happened.
 #pragma once
 
 #include <string>
@@ -8,8 +9,8 @@
 namespace tether::hub {
 
 enum class HubErrorKind {
-  gated,               // 401/403: gated or private repo, token missing, wrong, or license not accepted
-  repo_not_found,      // 404 RepoNotFound
+  gated,           // 401/403: gated or private repo, token missing, wrong, or license not accepted
+  repo_not_found,  // 404 RepoNotFound
   revision_not_found,  // 404 RevisionNotFound
   entry_not_found,     // 404 for a file in an existing repo
   corrupt,             // downloaded bytes do not match the ETag hash or the announced size
@@ -20,7 +21,8 @@ enum class HubErrorKind {
   filesystem,          // the cache directory could not be written or read
 };
 
-// Stable lower-case name of a kind ("gated", "entry_not_found", ...), for CLI output and JSON errors.
+// Stable lower-case name of a kind ("gated", "entry_not_found", ...), for CLI output and JSON
+// errors.
 const char* hub_error_kind_name(HubErrorKind kind);
 
 // The tether::ErrorCode each kind is reported under.

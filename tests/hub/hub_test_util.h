@@ -1,4 +1,5 @@
-// Shared helpers for the hub tests: scratch directories, file I/O and a scoped environment variable.
+// Shared helpers for the hub tests: scratch directories, file I/O and a scoped environment
+// variable.
 #pragma once
 
 #include <unistd.h>
@@ -20,8 +21,8 @@ class ScratchDir {
  public:
   explicit ScratchDir(const std::string& name) {
     static int counter = 0;
-    path_ = fs::temp_directory_path() /
-            ("tether_hub_" + std::to_string(::getpid()) + "_" + std::to_string(counter++) + "_" + name);
+    path_ = fs::temp_directory_path() / ("tether_hub_" + std::to_string(::getpid()) + "_" +
+                                         std::to_string(counter++) + "_" + name);
     fs::remove_all(path_);
     fs::create_directories(path_);
   }
@@ -69,12 +70,14 @@ class ScopedEnv {
   std::optional<std::string> old_;
 };
 
-// The same deterministic bytes fake_hub.py serves (its pattern_bytes): sha256("<seed>:<i>") digests, concatenated.
+// The same deterministic bytes fake_hub.py serves (its pattern_bytes): sha256("<seed>:<i>")
+// digests, concatenated.
 inline std::string pattern_bytes(size_t n, int seed) {
   std::string out;
   for (size_t i = 0; out.size() < n; ++i) {
     std::string hex = sha256_hex(std::to_string(seed) + ":" + std::to_string(i));
-    for (size_t k = 0; k < hex.size(); k += 2) out += static_cast<char>(std::stoi(hex.substr(k, 2), nullptr, 16));
+    for (size_t k = 0; k < hex.size(); k += 2)
+      out += static_cast<char>(std::stoi(hex.substr(k, 2), nullptr, 16));
   }
   out.resize(n);
   return out;

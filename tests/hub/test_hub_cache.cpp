@@ -27,7 +27,8 @@ HubErrorKind error_kind_of(F&& f) {
 
 // Lays out one repo exactly as huggingface_hub's hf_hub_download leaves it: blobs named by ETag,
 // relative snapshot symlinks, and a bare commit hash in refs/main.
-void build_python_style_cache(const fs::path& root, const std::string& config, const std::string& weights) {
+void build_python_style_cache(const fs::path& root, const std::string& config,
+                              const std::string& weights) {
   fs::path repo = root / "models--lerobot--smolvla_base";
   std::string config_etag = git_blob_sha1_hex(config);
   std::string weights_etag = sha256_hex(weights);
@@ -131,7 +132,8 @@ TEST(HubEnv, TokenFromEnvironmentOrTokenFileAndOfflineFlag) {
     EXPECT_EQ(token_from_env().value_or(""), "hf_from_env");
   }
   ScopedEnv transformers("TRANSFORMERS_OFFLINE", std::nullopt);
-  for (auto [value, expected] : {std::pair{"1", true}, {"yes", true}, {"TRUE", true}, {"0", false}, {"", false}}) {
+  for (auto [value, expected] :
+       {std::pair{"1", true}, {"yes", true}, {"TRUE", true}, {"0", false}, {"", false}}) {
     ScopedEnv offline("HF_HUB_OFFLINE", std::string(value));
     EXPECT_EQ(offline_from_env(), expected) << value;
   }
@@ -169,7 +171,8 @@ TEST(HubCacheLayout, PointersAreRelativeSymlinksIntoBlobsAndRefsHoldTheBareCommi
   fs::path snap = dir.path() / "models--org--model" / "snapshots" / kCommit;
   ASSERT_TRUE(fs::is_symlink(snap / "model.safetensors"));
   EXPECT_EQ(fs::read_symlink(snap / "model.safetensors").string(), "../../blobs/" + etag);
-  EXPECT_EQ(fs::read_symlink(snap / "a" / "b" / "model.safetensors").string(), "../../../../blobs/" + etag);
+  EXPECT_EQ(fs::read_symlink(snap / "a" / "b" / "model.safetensors").string(),
+            "../../../../blobs/" + etag);
   EXPECT_EQ(read_file(snap / "a" / "b" / "model.safetensors"), "weights");
   EXPECT_EQ(read_file(dir.path() / "models--org--model" / "refs" / "main"), kCommit);  // no newline
   EXPECT_FALSE(fs::exists(dir.path() / "models--org--model" / "refs" / kCommit));
@@ -195,11 +198,13 @@ TEST(HubOffline, ReusesACacheBuiltTheWayHuggingfaceHubBuildsIt) {
   HubClient client(opt);
 
   std::string p = client.download_file("lerobot/smolvla_base", "sub/model.safetensors");
-  EXPECT_EQ(p, (dir.path() / "models--lerobot--smolvla_base" / "snapshots" / kCommit / "sub" / "model.safetensors")
+  EXPECT_EQ(p, (dir.path() / "models--lerobot--smolvla_base" / "snapshots" / kCommit / "sub" /
+                "model.safetensors")
                    .string());
   EXPECT_EQ(read_file(p), weights);
   EXPECT_EQ(read_file(client.download_file("lerobot/smolvla_base", "config.json", "v1")), config);
-  EXPECT_EQ(read_file(client.download_file("lerobot/smolvla_base", "config.json", kCommit)), config);
+  EXPECT_EQ(read_file(client.download_file("lerobot/smolvla_base", "config.json", kCommit)),
+            config);
 
   RepoInfo info = client.resolve("lerobot/smolvla_base", "main");
   EXPECT_TRUE(info.from_cache);
@@ -233,9 +238,11 @@ TEST(HubOffline, MissingEntriesFailClearlyWithoutNetwork) {
     EXPECT_EQ(msg.find('\n'), std::string::npos) << msg;
   }
   EXPECT_EQ(error_kind_of([&] { client.resolve("lerobot/other"); }), HubErrorKind::not_cached);
-  EXPECT_EQ(error_kind_of([&] { client.snapshot_download("lerobot/smolvla_base", "main", {"*.bin"}); }),
-            HubErrorKind::not_cached);
-  EXPECT_EQ(error_kind_of([&] { client.download_file("lerobot/smolvla_base", "config.json", "dev"); }),
-            HubErrorKind::not_cached);
+  EXPECT_EQ(
+      error_kind_of([&] { client.snapshot_download("lerobot/smolvla_base", "main", {"*.bin"}); }),
+      HubErrorKind::not_cached);
+  EXPECT_EQ(
+      error_kind_of([&] { client.download_file("lerobot/smolvla_base", "config.json", "dev"); }),
+      HubErrorKind::not_cached);
   EXPECT_FALSE(client.cached_snapshot("lerobot/smolvla_base", "dev").has_value());
 }

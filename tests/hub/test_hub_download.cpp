@@ -1,12 +1,12 @@
-// Integration tests: HubClient against fake_hub.py (a local hub + CDN on loopback). Covers the cache
-// layout written, token handling across the CDN redirect, resume with Range, ETag verification,
-// hub error responses, offline fallback and an unreachable endpoint.
+// Integration tests: HubClient against fake_hub.py (a local hub + CDN on loopback). Covers the
+// cache layout written, token handling across the CDN redirect, resume with Range, ETag
+// verification, hub error responses, offline fallback and an unreachable endpoint.
+#include <arpa/inet.h>
 #include <gtest/gtest.h>
+#include <netinet/in.h>
 #include <signal.h>
 #include <sys/socket.h>
 #include <sys/wait.h>
-#include <netinet/in.h>
-#include <arpa/inet.h>
 
 #include "core/json_util.h"
 #include "hub/hash.h"
@@ -68,10 +68,12 @@ class FakeHub {
     auto res = http.perform(req);
     return tether::JsonMap::parse(res.response.body);
   }
-  std::vector<tether::JsonMap> requests(const std::string& server, const std::string& path_part) const {
+  std::vector<tether::JsonMap> requests(const std::string& server,
+                                        const std::string& path_part) const {
     std::vector<tether::JsonMap> out;
     for (const auto& r : log())
-      if (r["server"] == server && r["path"].get<std::string>().find(path_part) != std::string::npos)
+      if (r["server"] == server &&
+          r["path"].get<std::string>().find(path_part) != std::string::npos)
         out.push_back(r);
     return out;
   }
@@ -139,8 +141,9 @@ TEST_F(IntegrationHub, ResolveReturnsCommitAndFileList) {
   EXPECT_FALSE(info.from_cache);
   std::vector<std::string> paths;
   for (auto& f : info.files) paths.push_back(f.path);
-  EXPECT_EQ(paths, (std::vector<std::string>{"big.bin", "config.json", "corrupt.bin", "model.safetensors",
-                                             "norange.bin", "sub/dir/notes.txt"}));
+  EXPECT_EQ(paths,
+            (std::vector<std::string>{"big.bin", "config.json", "corrupt.bin", "model.safetensors",
+                                      "norange.bin", "sub/dir/notes.txt"}));
   EXPECT_EQ(c.resolve(kRepo, "dev").commit, kDev);
   EXPECT_TRUE(c.resolve("tether-test/gated").gated);
 }
@@ -158,11 +161,13 @@ TEST_F(IntegrationHub, GitFileLandsInTheExactHuggingfaceHubLayout) {
   EXPECT_TRUE(fs::exists(dir.path() / ".locks" / "models--tether-test--tiny" / (etag + ".lock")));
   // Nothing left over: no partial files beside the blob.
   size_t blobs = 0;
-  for (auto& e : fs::directory_iterator(repo_dir() / "blobs")) blobs += e.path().extension() != ".incomplete";
+  for (auto& e : fs::directory_iterator(repo_dir() / "blobs"))
+    blobs += e.path().extension() != ".incomplete";
   EXPECT_EQ(blobs, 1u);
 
   std::string nested = c.download_file(kRepo, "sub/dir/notes.txt");
-  EXPECT_EQ(fs::read_symlink(nested).string(), "../../../../blobs/" + git_blob_sha1_hex("nested file\n"));
+  EXPECT_EQ(fs::read_symlink(nested).string(),
+            "../../../../blobs/" + git_blob_sha1_hex("nested file\n"));
   EXPECT_EQ(read_file(nested), "nested file\n");
 }
 
@@ -172,7 +177,8 @@ TEST_F(IntegrationHub, LfsFileComesFromTheCdnWithoutTheToken) {
   std::string sha = sha256_hex(weights);
   std::string p = c.download_file(kRepo, "model.safetensors");
   EXPECT_EQ(read_file(p), weights);
-  EXPECT_EQ(fs::read_symlink(p).string(), "../../blobs/" + sha);  // named by X-Linked-Etag, not the ETag
+  EXPECT_EQ(fs::read_symlink(p).string(),
+            "../../blobs/" + sha);  // named by X-Linked-Etag, not the ETag
 
   auto head = hub.requests("hub", "/resolve/main/model.safetensors");
   ASSERT_EQ(head.size(), 1u);
@@ -222,7 +228,8 @@ TEST_F(IntegrationHub, PartialFileFromAnEarlierRunIsResumed) {
 TEST_F(IntegrationHub, ServerIgnoringRangeRestartsTheFileFromZero) {
   std::string data = pattern_bytes(48 * 1024, 4);
   std::string sha = sha256_hex(data);
-  write_file(repo_dir() / "blobs" / (sha + ".incomplete"), std::string(1000, 'x'));  // would poison an append
+  write_file(repo_dir() / "blobs" / (sha + ".incomplete"),
+             std::string(1000, 'x'));  // would poison an append
   auto c = client();
   EXPECT_EQ(read_file(c.download_file(kRepo, "norange.bin")), data);
   auto cdn = hub.requests("cdn", sha);
@@ -292,8 +299,10 @@ TEST_F(IntegrationHub, MissingFileRepoAndRevisionAreNotFound) {
   EXPECT_NE(std::string(file.what()).find("nope.json"), std::string::npos);
   EXPECT_EQ(hub_error_of([&] { c.download_file("tether-test/absent", "config.json"); }).kind(),
             HubErrorKind::repo_not_found);
-  EXPECT_EQ(hub_error_of([&] { c.resolve("tether-test/absent"); }).kind(), HubErrorKind::repo_not_found);
-  EXPECT_EQ(hub_error_of([&] { c.resolve(kRepo, "no-such-branch"); }).kind(), HubErrorKind::revision_not_found);
+  EXPECT_EQ(hub_error_of([&] { c.resolve("tether-test/absent"); }).kind(),
+            HubErrorKind::repo_not_found);
+  EXPECT_EQ(hub_error_of([&] { c.resolve(kRepo, "no-such-branch"); }).kind(),
+            HubErrorKind::revision_not_found);
   EXPECT_EQ(hub_error_of([&] { c.download_file(kRepo, "config.json", "no-such-branch"); }).kind(),
             HubErrorKind::revision_not_found);
 }
@@ -314,7 +323,8 @@ TEST_F(IntegrationHub, SnapshotDownloadFiltersWritesRefsAndWorksOfflineAfterward
   std::string snap = c.snapshot_download(kRepo, "dev", {"*.json", "sub/"});
   EXPECT_EQ(snap, (repo_dir() / "snapshots" / kDev).string());
   EXPECT_EQ(read_file(repo_dir() / "refs" / "dev"), kDev);
-  EXPECT_EQ(read_file(fs::path(snap) / "config.json"), "{\"type\": \"smolvla\", \"chunk_size\": 10}\n");
+  EXPECT_EQ(read_file(fs::path(snap) / "config.json"),
+            "{\"type\": \"smolvla\", \"chunk_size\": 10}\n");
   EXPECT_TRUE(fs::exists(fs::path(snap) / "sub" / "dir" / "notes.txt"));
   EXPECT_FALSE(fs::exists(fs::path(snap) / "model.safetensors"));
   EXPECT_TRUE(hub.requests("cdn", "/repos/").empty());
@@ -332,7 +342,8 @@ TEST_F(IntegrationHub, SnapshotDownloadFiltersWritesRefsAndWorksOfflineAfterward
 
 TEST_F(IntegrationHub, FullSnapshotMatchesTheHubAndUnreachableHubFallsBackToTheCache) {
   auto c = client();
-  std::string snap = c.snapshot_download(kRepo, "main", {"config.json", "model.safetensors", "sub/*"});
+  std::string snap =
+      c.snapshot_download(kRepo, "main", {"config.json", "model.safetensors", "sub/*"});
   EXPECT_EQ(read_file(fs::path(snap) / "model.safetensors"), pattern_bytes(300 * 1024, 1));
 
   // Same cache, endpoint on a closed port: cached files still resolve, like huggingface_hub does.
@@ -341,7 +352,8 @@ TEST_F(IntegrationHub, FullSnapshotMatchesTheHubAndUnreachableHubFallsBackToTheC
   opt.cache_root = dir.str();
   opt.progress = ProgressMode::never;
   HubClient unreachable(opt);
-  EXPECT_EQ(unreachable.download_file(kRepo, "config.json"), (fs::path(snap) / "config.json").string());
+  EXPECT_EQ(unreachable.download_file(kRepo, "config.json"),
+            (fs::path(snap) / "config.json").string());
   RepoInfo info = unreachable.resolve(kRepo);
   EXPECT_TRUE(info.from_cache);
   EXPECT_EQ(info.commit, kMain);
@@ -349,7 +361,8 @@ TEST_F(IntegrationHub, FullSnapshotMatchesTheHubAndUnreachableHubFallsBackToTheC
 
 namespace {
 
-// A Python with huggingface_hub: TETHER_HF_PYTHON, else the oracle venv (tools/oracle/setup.sh creates it).
+// A Python with huggingface_hub: TETHER_HF_PYTHON, else the oracle venv (tools/oracle/setup.sh
+// creates it).
 std::optional<std::string> huggingface_hub_python() {
   std::string py;
   if (const char* v = std::getenv("TETHER_HF_PYTHON")) {
@@ -367,11 +380,13 @@ std::optional<std::string> huggingface_hub_python() {
 }
 
 // Runs hf_crosscheck.py and returns its JSON report.
-tether::JsonMap run_crosscheck(const std::string& python, const std::string& env, const std::string& cache_dir,
-                               const std::string& repo, const std::string& revision,
-                               const std::vector<std::string>& files, const fs::path& scratch) {
-  std::string cmd = env + " '" + python + "' '" + TETHER_SOURCE_DIR + "/tests/hub/hf_crosscheck.py' '" + cache_dir +
-                    "' '" + repo + "' '" + revision + "'";
+tether::JsonMap run_crosscheck(const std::string& python, const std::string& env,
+                               const std::string& cache_dir, const std::string& repo,
+                               const std::string& revision, const std::vector<std::string>& files,
+                               const fs::path& scratch) {
+  std::string cmd = env + " '" + python + "' '" + TETHER_SOURCE_DIR +
+                    "/tests/hub/hf_crosscheck.py' '" + cache_dir + "' '" + repo + "' '" + revision +
+                    "'";
   for (const auto& f : files) cmd += " '" + f + "'";
   fs::path out = scratch / "crosscheck.json";
   cmd += " > '" + out.string() + "' 2> '" + (scratch / "crosscheck.err").string() + "'";
@@ -385,31 +400,36 @@ tether::JsonMap run_crosscheck(const std::string& python, const std::string& env
 
 TEST_F(IntegrationHub, HuggingfaceHubAndTetherShareOneCache) {
   auto python = huggingface_hub_python();
-  if (!python) GTEST_SKIP() << "no Python with huggingface_hub (set TETHER_HF_PYTHON or run tools/oracle/setup.sh)";
+  if (!python)
+    GTEST_SKIP()
+        << "no Python with huggingface_hub (set TETHER_HF_PYTHON or run tools/oracle/setup.sh)";
   ScratchDir scratch("crosscheck");
-  std::string quiet = "HF_HUB_DISABLE_TELEMETRY=1 HF_HUB_DISABLE_PROGRESS_BARS=1 NO_PROXY='*' HF_TOKEN= ";
+  std::string quiet =
+      "HF_HUB_DISABLE_TELEMETRY=1 HF_HUB_DISABLE_PROGRESS_BARS=1 NO_PROXY='*' HF_TOKEN= ";
 
   // Python downloads from the fake hub; Tether, offline, finds the very same files.
-  auto py = run_crosscheck(*python, quiet + "HF_ENDPOINT=" + hub.hub_url(), dir.str(), kRepo, "main",
-                           {"config.json", "model.safetensors"}, scratch.path());
+  auto py = run_crosscheck(*python, quiet + "HF_ENDPOINT=" + hub.hub_url(), dir.str(), kRepo,
+                           "main", {"config.json", "model.safetensors"}, scratch.path());
   ASSERT_TRUE(py.contains("paths"));
   size_t requests_by_python = hub.log().size();
   auto offline = client(std::nullopt, true);
   EXPECT_EQ(offline.download_file(kRepo, "config.json"), py["paths"][0].get<std::string>());
   EXPECT_EQ(offline.download_file(kRepo, "model.safetensors"), py["paths"][1].get<std::string>());
 
-  // Tether downloads more (a nested git file, another branch); Python, offline, finds them, and its cache
-  // scanner sees one consistent cache.
+  // Tether downloads more (a nested git file, another branch); Python, offline, finds them, and its
+  // cache scanner sees one consistent cache.
   auto online = client();
   std::string nested = online.download_file(kRepo, "sub/dir/notes.txt");
   std::string dev_config = online.download_file(kRepo, "config.json", "dev");
   EXPECT_GT(hub.log().size(), requests_by_python);
-  auto main_check = run_crosscheck(*python, quiet + "HF_HUB_OFFLINE=1 HF_ENDPOINT=http://127.0.0.1:1", dir.str(),
-                                   kRepo, "main", {"sub/dir/notes.txt", "model.safetensors"}, scratch.path());
+  auto main_check =
+      run_crosscheck(*python, quiet + "HF_HUB_OFFLINE=1 HF_ENDPOINT=http://127.0.0.1:1", dir.str(),
+                     kRepo, "main", {"sub/dir/notes.txt", "model.safetensors"}, scratch.path());
   ASSERT_TRUE(main_check.contains("paths"));
   EXPECT_EQ(main_check["paths"][0].get<std::string>(), nested);
-  auto dev_check = run_crosscheck(*python, quiet + "HF_HUB_OFFLINE=1 HF_ENDPOINT=http://127.0.0.1:1", dir.str(),
-                                  kRepo, "dev", {"config.json"}, scratch.path());
+  auto dev_check =
+      run_crosscheck(*python, quiet + "HF_HUB_OFFLINE=1 HF_ENDPOINT=http://127.0.0.1:1", dir.str(),
+                     kRepo, "dev", {"config.json"}, scratch.path());
   ASSERT_TRUE(dev_check.contains("paths"));
   EXPECT_EQ(dev_check["paths"][0].get<std::string>(), dev_config);
   EXPECT_TRUE(dev_check["warnings"].empty()) << dev_check["warnings"].dump();
@@ -418,7 +438,8 @@ TEST_F(IntegrationHub, HuggingfaceHubAndTetherShareOneCache) {
   expected.push_back({kMain, "config.json", blob(git_blob_sha1_hex(kConfig))});
   expected.push_back({kMain, "model.safetensors", blob(sha256_hex(pattern_bytes(300 * 1024, 1)))});
   expected.push_back({kMain, "sub/dir/notes.txt", blob(git_blob_sha1_hex("nested file\n"))});
-  expected.push_back({kDev, "config.json", blob(git_blob_sha1_hex("{\"type\": \"smolvla\", \"chunk_size\": 10}\n"))});
+  expected.push_back({kDev, "config.json",
+                      blob(git_blob_sha1_hex("{\"type\": \"smolvla\", \"chunk_size\": 10}\n"))});
   std::sort(expected.begin(), expected.end());
   EXPECT_EQ(dev_check["cached"], expected);
 }
