@@ -1,6 +1,5 @@
 #include "models/llama_decoder.h"
 
-#include "backend/cpu/gemm.h"
 #include "backend/cpu/kernels.h"
 
 namespace tether::models {
@@ -28,7 +27,8 @@ LlamaConfig LlamaConfig::from_json(const Json& j, const std::string& where) {
 }
 
 void LlamaLayer::load(Weights& w, const std::string& p, const LlamaConfig& cfg, int64_t hidden_size,
-                      int64_t intermediate_size, int64_t kv_input, bool cross_attention) {
+                      int64_t intermediate_size, int64_t kv_input, bool cross_attention, cpu::Precision precision,
+                      bool kv_only) {
   hidden = hidden_size;
   intermediate = intermediate_size;
   q_dim = cfg.heads * cfg.head_dim;
@@ -39,44 +39,49 @@ void LlamaLayer::load(Weights& w, const std::string& p, const LlamaConfig& cfg, 
   post_norm = w.f32(p + "post_attention_layernorm.weight", {hidden});
 
   const std::string q = p + "self_attn.q_proj.", k = p + "self_attn.k_proj.", v = p + "self_attn.v_proj.";
+  const bool bias = cfg.attention_bias;
+  auto biases = [&](std::vector<std::pair<std::string, Shape>> parts) {
+    return bias ? w.stacked(parts) : std::vector<float>{};
+  };
   if (cross) {
-    qkv_w = w.stacked({{q + "weight", {q_dim, hidden}}});
-    kv_w = w.stacked({{k + "weight", {kv_dim, kv_in}}, {v + "weight", {kv_dim, kv_in}}});
+    pack_linear(w, qkv, q.substr(0, q.size() - 1), q_dim, hidden, bias, precision);
+    pack_linear(w, k_in, k.substr(0, k.size() - 1), kv_dim, kv_in, bias, precision);
+    pack_linear(w, v_in, v.substr(0, v.size() - 1), kv_dim, kv_in, bias, precision);
   } else {
-    qkv_w = w.stacked({{q + "weight", {q_dim, hidden}}, {k + "weight", {kv_dim, kv_in}}, {v + "weight", {kv_dim, kv_in}}});
-  }
-  if (cfg.attention_bias) {
-    if (cross) {
-      qkv_b = w.stacked({{q + "bias", {q_dim}}});
-      kv_b = w.stacked({{k + "bias", {kv_dim}}, {v + "bias", {kv_dim}}});
+    const auto kv_w = w.stacked({{k + "weight", {kv_dim, kv_in}}, {v + "weight", {kv_dim, kv_in}}});
+    const auto kv_b = biases({{k + "bias", {kv_dim}}, {v + "bias", {kv_dim}}});
+    if (kv_only) {
+      kv.pack(kv_w.data(), 2 * kv_dim, kv_in, bias ? kv_b.data() : nullptr, precision);
     } else {
-      qkv_b = w.stacked({{q + "bias", {q_dim}}, {k + "bias", {kv_dim}}, {v + "bias", {kv_dim}}});
+      std::vector<float> all = w.stacked({{q + "weight", {q_dim, hidden}}});
+      all.insert(all.end(), kv_w.begin(), kv_w.end());
+      std::vector<float> all_b = biases({{q + "bias", {q_dim}}});
+      all_b.insert(all_b.end(), kv_b.begin(), kv_b.end());
+      qkv.pack(all.data(), q_dim + 2 * kv_dim, hidden, bias ? all_b.data() : nullptr, precision);
     }
   }
-  o_w = w.f32(p + "self_attn.o_proj.weight", {hidden, q_dim});
-  o_b = cfg.attention_bias ? w.f32(p + "self_attn.o_proj.bias", {hidden}) : nullptr;
-  gate_up_w = w.stacked({{p + "mlp.gate_proj.weight", {intermediate, hidden}},
-                         {p + "mlp.up_proj.weight", {intermediate, hidden}}});
-  if (cfg.mlp_bias)
-    gate_up_b = w.stacked({{p + "mlp.gate_proj.bias", {intermediate}}, {p + "mlp.up_proj.bias", {intermediate}}});
-  down_w = w.f32(p + "mlp.down_proj.weight", {hidden, intermediate});
-  down_b = cfg.mlp_bias ? w.f32(p + "mlp.down_proj.bias", {hidden}) : nullptr;
+  if (kv_only) return;  // the output of this layer is never read: no o_proj or MLP needed
+  pack_linear(w, o, p + "self_attn.o_proj", hidden, q_dim, bias, precision);
+  const auto gu_w = w.stacked({{p + "mlp.gate_proj.weight", {intermediate, hidden}},
+                               {p + "mlp.up_proj.weight", {intermediate, hidden}}});
+  const auto gu_b = cfg.mlp_bias ? w.stacked({{p + "mlp.gate_proj.bias", {intermediate}}, {p + "mlp.up_proj.bias", {intermediate}}})
+                                 : std::vector<float>{};
+  gate_up.pack(gu_w.data(), 2 * intermediate, hidden, cfg.mlp_bias ? gu_b.data() : nullptr, precision);
+  pack_linear(w, down, p + "mlp.down_proj", hidden, intermediate, cfg.mlp_bias, precision);
 }
 
 void LlamaLayer::finish(const float* attn, int64_t rows, float eps, float* x, std::vector<float>& scratch) const {
-  linear(attn, rows, q_dim, o_w, o_b, hidden, x, /*accumulate=*/true);
+  o.forward(attn, rows, x, /*accumulate=*/true);
   const std::size_t need = std::size_t(rows * (hidden + 3 * intermediate));
   if (scratch.size() < need) scratch.resize(need);
   float* normed = scratch.data();
-  float* gate_up = normed + rows * hidden;
-  float* act = gate_up + rows * 2 * intermediate;
+  float* gu = normed + rows * hidden;  // [gate | up] per row
+  float* act = gu + rows * 2 * intermediate;
   rms_norm(x, rows, hidden, post_norm, eps, normed);
-  linear(normed, rows, hidden, gate_up_w.data(), gate_up_b.empty() ? nullptr : gate_up_b.data(), 2 * intermediate,
-         gate_up);
+  gate_up.forward(normed, rows, gu);
   for (int64_t r = 0; r < rows; ++r)
-    silu_mul(gate_up + r * 2 * intermediate, gate_up + r * 2 * intermediate + intermediate, intermediate,
-             act + r * intermediate);
-  linear(act, rows, intermediate, down_w, down_b, hidden, x, /*accumulate=*/true);
+    silu_mul(gu + r * 2 * intermediate, gu + r * 2 * intermediate + intermediate, intermediate, act + r * intermediate);
+  down.forward(act, rows, x, /*accumulate=*/true);
 }
 
 }  // namespace tether::models

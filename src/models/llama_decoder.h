@@ -6,6 +6,7 @@
 #include <string>
 #include <vector>
 
+#include "backend/cpu/packed_linear.h"
 #include "core/json_util.h"
 #include "models/weights.h"
 
@@ -25,17 +26,13 @@ struct LlamaLayer {
   int64_t hidden = 0, intermediate = 0, q_dim = 0, kv_dim = 0, kv_in = 0;
   bool cross = false;
   const float *input_norm = nullptr, *post_norm = nullptr;
-  std::vector<float> qkv_w, qkv_b;     // self: [q_dim + 2 kv_dim, hidden]; cross: q only [q_dim, hidden]
-  std::vector<float> kv_w, kv_b;       // cross only: [2 kv_dim, kv_in]
-  const float *o_w = nullptr, *o_b = nullptr;
-  std::vector<float> gate_up_w, gate_up_b;  // [2 intermediate, hidden]
-  const float *down_w = nullptr, *down_b = nullptr;
+  cpu::PackedLinear qkv;         // self: [q | k | v] from the layer input; cross: q only
+  cpu::PackedLinear k_in, v_in;  // cross only: k and v projections of the other stream's K and V
+  cpu::PackedLinear kv;          // self, on request: [k | v] alone, for a last layer whose output is never read
+  cpu::PackedLinear o, gate_up, down;  // gate_up: [gate | up]
 
   void load(Weights& w, const std::string& prefix, const LlamaConfig& cfg, int64_t hidden, int64_t intermediate,
-            int64_t kv_in, bool cross);
-
-  const float* qkv_bias() const { return qkv_b.empty() ? nullptr : qkv_b.data(); }
-  const float* kv_bias() const { return kv_b.empty() ? nullptr : kv_b.data(); }
+            int64_t kv_in, bool cross, cpu::Precision precision, bool kv_only = false);
 
   // x += o_proj(attn) ; x += down(silu(gate(n)) * up(n)) with n = post_norm(x). `scratch` grows as needed.
   void finish(const float* attn, int64_t rows, float eps, float* x, std::vector<float>& scratch) const;

@@ -9,6 +9,7 @@
 #include <string>
 #include <vector>
 
+#include "backend/cpu/packed_linear.h"
 #include "core/json_util.h"
 #include "core/tensor.h"
 #include "vision/image.h"
@@ -43,6 +44,13 @@ struct ModelSpec {
   int64_t max_state_dim = 0, max_action_dim = 0;
   int64_t image_height = 0, image_width = 0;  // what the vision tower receives
   std::string weights_dtype;                   // as stored in the checkpoint
+  cpu::Precision precision = cpu::Precision::fp32;  // what the linear layers compute in
+};
+
+struct LoadOptions {
+  // fp32 is the reference mode; bf16 runs the linear layers with bf16 weights and inputs (float32
+  // accumulation, attention and norms in float32), measured against fp32, never assumed equal.
+  cpu::Precision precision = cpu::Precision::fp32;
 };
 
 // Called with named intermediates ("mid.vision.<camera>", "mid.prefix_k.0", ...) when set: parity failures are
@@ -65,7 +73,8 @@ class Model {
 };
 
 // Loads the family named by config["type"] from a checkpoint directory.
-std::unique_ptr<Model> load_model(const std::string& checkpoint_dir, const Json& policy_config);
+std::unique_ptr<Model> load_model(const std::string& checkpoint_dir, const Json& policy_config,
+                                  const LoadOptions& options = {});
 std::vector<std::string> model_families();
 
 // Standard-normal noise from a seed: the same seed gives the same noise on every platform (explicit

@@ -10,17 +10,17 @@ namespace tether::models {
 namespace {
 struct Family {
   const char* type;
-  std::unique_ptr<Model> (*load)(const std::string& dir, const Json& config);
+  std::unique_ptr<Model> (*load)(const std::string& dir, const Json& config, const LoadOptions& options);
 };
 constexpr Family kFamilies[] = {
     {"smolvla", &load_smolvla},
 };
 }  // namespace
 
-std::unique_ptr<Model> load_model(const std::string& dir, const Json& config) {
+std::unique_ptr<Model> load_model(const std::string& dir, const Json& config, const LoadOptions& options) {
   const std::string type = json_get<std::string>(config, "type", dir + "/config.json");
   for (const auto& f : kFamilies)
-    if (type == f.type) return f.load(dir, config);
+    if (type == f.type) return f.load(dir, config, options);
   std::string known;
   for (const auto& f : kFamilies) known += std::string(known.empty() ? "" : ", ") + f.type;
   throw Error(ErrorCode::unsupported, dir + "/config.json: model type '" + type + "' is not supported (supported: " +

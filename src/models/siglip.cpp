@@ -29,7 +29,7 @@ VisionConfig VisionConfig::from_json(const Json& j, const std::string& where) {
   return c;
 }
 
-void VisionTower::load(Weights& w, const std::string& prefix, const VisionConfig& cfg) {
+void VisionTower::load(Weights& w, const std::string& prefix, const VisionConfig& cfg, cpu::Precision precision) {
   cfg_ = cfg;
   const int64_t d = cfg.hidden, f = cfg.intermediate, p = cfg.patch;
   const int64_t side = cfg.image_size / p;
@@ -44,22 +44,18 @@ void VisionTower::load(Weights& w, const std::string& prefix, const VisionConfig
     Layer& L = layers_[i];
     L.ln1_w = w.f32(lp + "layer_norm1.weight", {d});
     L.ln1_b = w.f32(lp + "layer_norm1.bias", {d});
-    // q, k, v weights then their biases in one buffer: one GEMM computes all three projections.
-    L.qkv_w = w.stacked({{lp + "self_attn.q_proj.weight", {d, d}},
-                         {lp + "self_attn.k_proj.weight", {d, d}},
-                         {lp + "self_attn.v_proj.weight", {d, d}},
-                         {lp + "self_attn.q_proj.bias", {d}},
-                         {lp + "self_attn.k_proj.bias", {d}},
-                         {lp + "self_attn.v_proj.bias", {d}}});
-    L.qkv_b = L.qkv_w.data() + 3 * d * d;
-    L.o_w = w.f32(lp + "self_attn.out_proj.weight", {d, d});
-    L.o_b = w.f32(lp + "self_attn.out_proj.bias", {d});
     L.ln2_w = w.f32(lp + "layer_norm2.weight", {d});
     L.ln2_b = w.f32(lp + "layer_norm2.bias", {d});
-    L.fc1_w = w.f32(lp + "mlp.fc1.weight", {f, d});
-    L.fc1_b = w.f32(lp + "mlp.fc1.bias", {f});
-    L.fc2_w = w.f32(lp + "mlp.fc2.weight", {d, f});
-    L.fc2_b = w.f32(lp + "mlp.fc2.bias", {d});
+    const std::vector<float> qkv = w.stacked({{lp + "self_attn.q_proj.weight", {d, d}},
+                                              {lp + "self_attn.k_proj.weight", {d, d}},
+                                              {lp + "self_attn.v_proj.weight", {d, d}}});
+    const std::vector<float> qkv_b = w.stacked({{lp + "self_attn.q_proj.bias", {d}},
+                                                {lp + "self_attn.k_proj.bias", {d}},
+                                                {lp + "self_attn.v_proj.bias", {d}}});
+    L.qkv.pack(qkv.data(), 3 * d, d, qkv_b.data(), precision);
+    pack_linear(w, L.o, lp + "self_attn.out_proj", d, d, true, precision);
+    pack_linear(w, L.fc1, lp + "mlp.fc1", f, d, true, precision);
+    pack_linear(w, L.fc2, lp + "mlp.fc2", d, f, true, precision);
   }
 }
 
@@ -106,25 +102,25 @@ void VisionTower::forward(const float* pixels, int64_t batch, int64_t height, in
   const float scale_qk = 1.0f / std::sqrt(float(hd));
   for (const Layer& L : layers_) {
     layer_norm(x_.data(), m, d, L.ln1_w, L.ln1_b, cfg_.layer_norm_eps, normed_.data());
-    linear(normed_.data(), m, d, L.qkv_w.data(), L.qkv_b, 3 * d, qkv_.data());
+    L.qkv.forward(normed_.data(), m, qkv_.data());
     attention(qkv_.data(), 3 * d, qkv_.data() + d, qkv_.data() + 2 * d, 3 * d, nullptr, batch, n, n, heads, heads, hd,
               scale_qk, attn_.data());
-    linear(attn_.data(), m, d, L.o_w, L.o_b, d, x_.data(), /*accumulate=*/true);
+    L.o.forward(attn_.data(), m, x_.data(), /*accumulate=*/true);
     layer_norm(x_.data(), m, d, L.ln2_w, L.ln2_b, cfg_.layer_norm_eps, normed_.data());
-    linear(normed_.data(), m, d, L.fc1_w, L.fc1_b, f, mlp_.data());
+    L.fc1.forward(normed_.data(), m, mlp_.data());
     gelu_tanh(mlp_.data(), m * f);
-    linear(mlp_.data(), m, f, L.fc2_w, L.fc2_b, d, x_.data(), /*accumulate=*/true);
+    L.fc2.forward(mlp_.data(), m, x_.data(), /*accumulate=*/true);
   }
   layer_norm(x_.data(), m, d, post_ln_w_, post_ln_b_, cfg_.layer_norm_eps, out);
 }
 
 void PixelShuffleConnector::load(Weights& w, const std::string& prefix, int64_t vision_hidden, int64_t scale_factor,
-                                 int64_t text_hidden) {
+                                 int64_t text_hidden, cpu::Precision precision) {
   vision_hidden_ = vision_hidden;
   scale_ = scale_factor;
   text_hidden_ = text_hidden;
-  proj_w_ = w.f32(prefix + "modality_projection.proj.weight",
-                  {text_hidden, vision_hidden * scale_factor * scale_factor});
+  pack_linear(w, proj_, prefix + "modality_projection.proj", text_hidden, vision_hidden * scale_factor * scale_factor,
+              false, precision);
 }
 
 void PixelShuffleConnector::forward(const float* x, int64_t batch, int64_t patches, float* out) {
@@ -135,7 +131,7 @@ void PixelShuffleConnector::forward(const float* x, int64_t batch, int64_t patch
   const int64_t t = tokens(patches), k = vision_hidden_ * scale_ * scale_;
   shuffled_.resize(std::size_t(batch * t * k));
   pixel_shuffle(x, batch, patches, vision_hidden_, scale_, shuffled_.data());
-  linear(shuffled_.data(), batch * t, k, proj_w_, nullptr, text_hidden_, out);
+  proj_.forward(shuffled_.data(), batch * t, out);
 }
 
 }  // namespace tether::models

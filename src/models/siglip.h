@@ -5,6 +5,7 @@
 #include <string>
 #include <vector>
 
+#include "backend/cpu/packed_linear.h"
 #include "core/json_util.h"
 #include "models/weights.h"
 
@@ -19,7 +20,7 @@ struct VisionConfig {
 
 class VisionTower {
  public:
-  void load(Weights& weights, const std::string& prefix, const VisionConfig& config);
+  void load(Weights& weights, const std::string& prefix, const VisionConfig& config, cpu::Precision precision);
 
   int64_t hidden() const { return cfg_.hidden; }
   int64_t num_patches(int64_t height, int64_t width) const { return (height / cfg_.patch) * (width / cfg_.patch); }
@@ -30,8 +31,9 @@ class VisionTower {
 
  private:
   struct Layer {
-    const float *ln1_w, *ln1_b, *qkv_b, *o_w, *o_b, *ln2_w, *ln2_b, *fc1_w, *fc1_b, *fc2_w, *fc2_b;
-    std::vector<float> qkv_w;  // q, k and v stacked so one GEMM computes all three
+    const float *ln1_w, *ln1_b, *ln2_w, *ln2_b;
+    cpu::PackedLinear qkv;  // q, k and v stacked so one GEMM computes all three
+    cpu::PackedLinear o, fc1, fc2;
   };
   void position_ids(int64_t patches_h, int64_t patches_w, std::vector<int64_t>& ids) const;
 
@@ -47,14 +49,14 @@ class VisionTower {
 class PixelShuffleConnector {
  public:
   void load(Weights& weights, const std::string& prefix, int64_t vision_hidden, int64_t scale_factor,
-            int64_t text_hidden);
+            int64_t text_hidden, cpu::Precision precision);
   int64_t tokens(int64_t patches) const { return patches / (scale_ * scale_); }
   // x [B, patches, vision_hidden] -> out [B, patches / scale^2, text_hidden]
   void forward(const float* x, int64_t batch, int64_t patches, float* out);
 
  private:
   int64_t vision_hidden_ = 0, scale_ = 1, text_hidden_ = 0;
-  const float* proj_w_ = nullptr;
+  cpu::PackedLinear proj_;
   std::vector<float> shuffled_;
 };
 

@@ -98,7 +98,7 @@ TokenizerSettings read_tokenizer_settings(const fs::path& dir, const Json& confi
 
 class SmolVLA final : public Model {
  public:
-  SmolVLA(const fs::path& dir, const Json& config);
+  SmolVLA(const fs::path& dir, const Json& config, const LoadOptions& options);
   const ModelSpec& spec() const override { return spec_; }
   ModelOutput predict(const std::vector<ModelInput>& batch) override;
 
@@ -125,8 +125,7 @@ class SmolVLA final : public Model {
   std::vector<int> expert_at_;  // VLM layer index -> expert layer index or -1
   int64_t expert_hidden_ = 0;
   const float *expert_norm_ = nullptr, *vlm_norm_ = nullptr;
-  const float *state_proj_w_, *state_proj_b_, *action_in_w_, *action_in_b_, *action_out_w_, *action_out_b_;
-  const float *time_in_w_, *time_in_b_, *time_out_w_, *time_out_b_;
+  cpu::PackedLinear state_proj_, action_in_, action_out_, time_in_, time_out_;
 
   // Per-request state, sized once per (batch, prefix length) so the denoise loop never allocates.
   int64_t B_ = 0, Lp_ = 0;
@@ -139,7 +138,9 @@ class SmolVLA final : public Model {
   std::vector<float> x_t_, v_t_, suffix_x_, cat_, time_emb_, mlp_h_, normed_;
 };
 
-SmolVLA::SmolVLA(const fs::path& dir, const Json& config) {
+SmolVLA::SmolVLA(const fs::path& dir, const Json& config, const LoadOptions& options) {
+  const cpu::Precision precision = options.precision;
+  spec_.precision = precision;
   const std::string where = (dir / "config.json").string();
   spec_.family = "smolvla";
   if (json_get_or<bool>(config, "adapt_to_pi_aloha", false, where))
@@ -217,21 +218,21 @@ SmolVLA::SmolVLA(const fs::path& dir, const Json& config) {
   const std::string vlm_prefix = "model.vlm_with_expert.vlm.model.";
   const std::string expert_prefix = "model.vlm_with_expert.lm_expert.";
   const int64_t D = text_cfg_.hidden, E = expert_hidden_, A = spec_.max_action_dim;
-  vision_.load(w, vlm_prefix + "vision_model.", vision_cfg);
-  connector_.load(w, vlm_prefix + "connector.", vision_cfg.hidden, scale_factor, D);
+  vision_.load(w, vlm_prefix + "vision_model.", vision_cfg, precision);
+  connector_.load(w, vlm_prefix + "connector.", vision_cfg.hidden, scale_factor, D, precision);
   embed_tokens_ = w.raw(vlm_prefix + "text_model.embed_tokens.weight", {text_cfg_.vocab, D});
   vlm_norm_ = w.f32(vlm_prefix + "text_model.norm.weight", {D});
   vlm_.resize(std::size_t(vlm_layers));
   for (int64_t i = 0; i < vlm_layers; ++i)
     vlm_[i].load(w, vlm_prefix + "text_model.layers." + std::to_string(i) + ".", text_cfg_, D,
-                 text_cfg_.intermediate, D, /*cross=*/false);
+                 text_cfg_.intermediate, D, /*cross=*/false, precision, /*kv_only=*/i + 1 == vlm_layers);
   const int64_t kv_dim = text_cfg_.kv_heads * text_cfg_.head_dim;
   expert_.resize(std::size_t(expert_layers));
   for (int64_t e = 0; e < expert_layers; ++e) {
     // Upstream reshapes k/v to read the VLM's K/V by *expert* index; routing below is by VLM index.
     const bool cross_shaped = cross_mode_ && !(self_attn_every_ > 0 && e % self_attn_every_ == 0);
     expert_[e].load(w, expert_prefix + "layers." + std::to_string(e) + ".", text_cfg_, E,
-                     expert_intermediate_size(E), cross_shaped ? kv_dim : E, cross_shaped);
+                     expert_intermediate_size(E), cross_shaped ? kv_dim : E, cross_shaped, precision);
   }
   expert_norm_ = w.f32(expert_prefix + "norm.weight", {E});
   const int64_t multiple = vlm_layers / expert_layers;
@@ -245,16 +246,11 @@ SmolVLA::SmolVLA(const fs::path& dir, const Json& config) {
                   where + ": this num_expert_layers/self_attn_every_n_layers combination routes expert layer " +
                       std::to_string(expert_at_[i]) + " through the wrong attention kind (upstream fails too)");
   }
-  state_proj_w_ = w.f32("model.state_proj.weight", {D, spec_.max_state_dim});
-  state_proj_b_ = w.f32("model.state_proj.bias", {D});
-  action_in_w_ = w.f32("model.action_in_proj.weight", {E, A});
-  action_in_b_ = w.f32("model.action_in_proj.bias", {E});
-  action_out_w_ = w.f32("model.action_out_proj.weight", {A, E});
-  action_out_b_ = w.f32("model.action_out_proj.bias", {A});
-  time_in_w_ = w.f32("model.action_time_mlp_in.weight", {E, 2 * E});
-  time_in_b_ = w.f32("model.action_time_mlp_in.bias", {E});
-  time_out_w_ = w.f32("model.action_time_mlp_out.weight", {E, E});
-  time_out_b_ = w.f32("model.action_time_mlp_out.bias", {E});
+  pack_linear(w, state_proj_, "model.state_proj", D, spec_.max_state_dim, true, precision);
+  pack_linear(w, action_in_, "model.action_in_proj", E, A, true, precision);
+  pack_linear(w, action_out_, "model.action_out_proj", A, E, true, precision);
+  pack_linear(w, time_in_, "model.action_time_mlp_in", E, 2 * E, true, precision);
+  pack_linear(w, time_out_, "model.action_time_mlp_out", E, E, true, precision);
   spec_.weights_dtype = w.stored_dtype();
   w.finish_loading();
   if (spec_.image_height == 0) spec_.image_height = spec_.image_width = vision_cfg.image_size;
@@ -414,7 +410,7 @@ void SmolVLA::build_prefix(const std::vector<ModelInput>& batch, ModelOutput& ou
     std::fill(state.begin(), state.end(), 0.f);
     const auto& s = batch[b].state;
     std::copy(s.begin(), s.end(), state.begin());
-    linear(state.data(), 1, spec_.max_state_dim, state_proj_w_, state_proj_b_, D, x + t * D);
+    state_proj_.forward(state.data(), 1, x + t * D);
     pad[t] = 1;
     prefix_att_[b * Lp + t] = 1;  // image and language tokens do not attend to the state
   }
@@ -456,12 +452,7 @@ void SmolVLA::run_prefix() {
     const bool last = li + 1 == vlm_.size();
     rms_norm(x, rows, D, L.input_norm, text_cfg_.rms_norm_eps, normed_.data());
     // The last layer's output is never read: only its K/V are needed.
-    if (last) {
-      linear(normed_.data(), rows, D, L.qkv_w.data() + q_dim * D, L.qkv_bias() ? L.qkv_bias() + q_dim : nullptr,
-             2 * kv_dim, qkv_.data());
-    } else {
-      linear(normed_.data(), rows, D, L.qkv_w.data(), L.qkv_bias(), qkv_dim, qkv_.data());
-    }
+    (last ? L.kv : L.qkv).forward(normed_.data(), rows, qkv_.data());
     const int64_t stride = last ? 2 * kv_dim : qkv_dim, k_off = last ? 0 : q_dim;
     for (int64_t b = 0; b < B; ++b) {
       float* kc = &k_cache_[li][b * (Lp + C) * kv_dim];
@@ -500,9 +491,8 @@ void SmolVLA::run_prefix() {
     for (int64_t b = 0; b < B; ++b) {
       const float* kc = &k_cache_[li][b * (Lp + C) * kv_dim];
       const float* vc = &v_cache_[li][b * (Lp + C) * kv_dim];
-      linear(kc, Lp, kv_dim, X.kv_w.data(), X.kv_bias(), kv_dim, &cross_k_[li][b * Lp * kv_dim]);
-      linear(vc, Lp, kv_dim, X.kv_w.data() + kv_dim * kv_dim, X.kv_bias() ? X.kv_bias() + kv_dim : nullptr, kv_dim,
-             &cross_v_[li][b * Lp * kv_dim]);
+      X.k_in.forward(kc, Lp, &cross_k_[li][b * Lp * kv_dim]);
+      X.v_in.forward(vc, Lp, &cross_v_[li][b * Lp * kv_dim]);
     }
   }
 
@@ -524,7 +514,7 @@ void SmolVLA::run_prefix() {
 
 // One Euler step's velocity: embeds x_t with the time, runs the expert against the cached prefix, writes v_t_.
 void SmolVLA::denoise_step(float time) {
-  const int64_t B = B_, Lp = Lp_, C = spec_.chunk_size, A = spec_.max_action_dim, E = expert_hidden_;
+  const int64_t B = B_, Lp = Lp_, C = spec_.chunk_size, E = expert_hidden_;
   const int64_t H = text_cfg_.heads, KvH = text_cfg_.kv_heads, hd = text_cfg_.head_dim;
   const int64_t q_dim = H * hd, kv_dim = KvH * hd, qkv_dim = q_dim + 2 * kv_dim, rows = B * C;
   const float scale_qk = 1.0f / std::sqrt(float(hd));
@@ -541,15 +531,11 @@ void SmolVLA::denoise_step(float time) {
     time_emb_[half + i] = float(std::cos(angle));
   }
   // [action_in(x_t), time] -> mlp_in -> silu -> mlp_out.
-  gemm(false, true, rows, E, A, 1.0f, x_t_.data(), A, action_in_w_, A, 0.0f, cat_.data(), 2 * E);
-  for (int64_t r = 0; r < rows; ++r) {
-    float* row = &cat_[r * 2 * E];
-    add(row, action_in_b_, E, row);
-    std::memcpy(row + E, time_emb_.data(), std::size_t(E) * sizeof(float));
-  }
-  linear(cat_.data(), rows, 2 * E, time_in_w_, time_in_b_, E, mlp_h_.data());
+  action_in_.forward(x_t_.data(), rows, cat_.data(), false, /*ldy=*/2 * E);
+  for (int64_t r = 0; r < rows; ++r) std::memcpy(&cat_[r * 2 * E + E], time_emb_.data(), std::size_t(E) * sizeof(float));
+  time_in_.forward(cat_.data(), rows, mlp_h_.data());
   silu(mlp_h_.data(), rows * E);
-  linear(mlp_h_.data(), rows, E, time_out_w_, time_out_b_, E, suffix_x_.data());
+  time_out_.forward(mlp_h_.data(), rows, suffix_x_.data());
 
   float* x = suffix_x_.data();
   for (std::size_t li = 0; li < vlm_.size(); ++li) {
@@ -557,7 +543,7 @@ void SmolVLA::denoise_step(float time) {
     const LlamaLayer& X = expert_[expert_at_[li]];
     rms_norm(x, rows, E, X.input_norm, text_cfg_.rms_norm_eps, normed_.data());
     if (!X.cross) {
-      linear(normed_.data(), rows, E, X.qkv_w.data(), X.qkv_bias(), qkv_dim, qkv_.data());
+      X.qkv.forward(normed_.data(), rows, qkv_.data());
       for (int64_t b = 0; b < B; ++b) {
         float* kc = &k_cache_[li][b * (Lp + C) * kv_dim];
         float* vc = &v_cache_[li][b * (Lp + C) * kv_dim];
@@ -573,7 +559,7 @@ void SmolVLA::denoise_step(float time) {
                   scale_qk, &attn_[b * C * q_dim]);
       }
     } else {
-      linear(normed_.data(), rows, E, X.qkv_w.data(), X.qkv_bias(), q_dim, q_.data());
+      X.qkv.forward(normed_.data(), rows, q_.data());
       for (int64_t b = 0; b < B; ++b) {
         rope(&q_[b * C * q_dim], 1, C, H, hd, &cross_pos_[b * C], kRopeWavelength);
         attention(&q_[b * C * q_dim], q_dim, &cross_k_[li][b * Lp * kv_dim], &cross_v_[li][b * Lp * kv_dim], kv_dim,
@@ -583,7 +569,7 @@ void SmolVLA::denoise_step(float time) {
     X.finish(attn_.data(), rows, text_cfg_.rms_norm_eps, x, scratch_);
   }
   rms_norm(x, rows, E, expert_norm_, text_cfg_.rms_norm_eps, normed_.data());
-  linear(normed_.data(), rows, E, action_out_w_, action_out_b_, A, v_t_.data());
+  action_out_.forward(normed_.data(), rows, v_t_.data());
 }
 
 ModelOutput SmolVLA::predict(const std::vector<ModelInput>& batch) {
@@ -634,8 +620,8 @@ ModelOutput SmolVLA::predict(const std::vector<ModelInput>& batch) {
 
 }  // namespace
 
-std::unique_ptr<Model> load_smolvla(const std::string& checkpoint_dir, const Json& config) {
-  return std::make_unique<SmolVLA>(fs::path(checkpoint_dir), config);
+std::unique_ptr<Model> load_smolvla(const std::string& checkpoint_dir, const Json& config, const LoadOptions& options) {
+  return std::make_unique<SmolVLA>(fs::path(checkpoint_dir), config, options);
 }
 
 }  // namespace tether::models

@@ -9,6 +9,7 @@
 
 namespace tether::models {
 
-std::unique_ptr<Model> load_smolvla(const std::string& checkpoint_dir, const Json& policy_config);
+std::unique_ptr<Model> load_smolvla(const std::string& checkpoint_dir, const Json& policy_config,
+                                    const LoadOptions& options);
 
 }  // namespace tether::models

@@ -19,10 +19,7 @@ const TensorEntry& Weights::checked(const std::string& name, const Shape& shape)
 const float* Weights::f32(const std::string& name, const Shape& shape) {
   checked(name, shape);
   Tensor t = file_.get(name);
-  if (t.dtype == DType::f32 && t.aligned()) {
-    in_place_ = true;
-    return t.as<float>();  // in place from the mmap
-  }
+  if (t.dtype == DType::f32 && t.aligned()) return t.as<float>();  // in place from the mmap
   widened_.push_back(t.to_f32());
   file_.drop_resident_pages(name);  // copied out: keep peak memory at one copy of the weights
   return widened_.back().data();
@@ -48,8 +45,13 @@ Tensor Weights::raw(const std::string& name, const Shape& shape) {
   return file_.get(name);  // rows fault in on demand, so it does not pin the file's pages
 }
 
-void Weights::finish_loading() {
-  if (!in_place_) file_.drop_resident_pages();
+void Weights::finish_loading() { file_.drop_resident_pages(); }
+
+void pack_linear(Weights& w, cpu::PackedLinear& out, const std::string& name, int64_t n, int64_t k, bool bias,
+                 cpu::Precision precision) {
+  const std::vector<float> weight = w.stacked({{name + ".weight", {n, k}}});
+  const std::vector<float> b = bias ? w.stacked({{name + ".bias", {n}}}) : std::vector<float>{};
+  out.pack(weight.data(), n, k, bias ? b.data() : nullptr, precision);
 }
 
 const float* Weights::f32_optional(const std::string& name, const Shape& shape) {

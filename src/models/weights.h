@@ -7,6 +7,7 @@
 #include <string>
 #include <vector>
 
+#include "backend/cpu/packed_linear.h"
 #include "core/safetensors.h"
 
 namespace tether::models {
@@ -30,8 +31,8 @@ class Weights {
   // Checked view in the stored dtype, for tables read a row at a time (token embeddings).
   Tensor raw(const std::string& name, const Shape& shape);
 
-  // After load: when no float32 view points into the file, its pages leave the resident set (the model only
-  // reads its own copies and row lookups, which fault pages back in on demand).
+  // After load: the file's pages leave the resident set. Linear weights live in packed copies; the few tensors
+  // still read from the mapping (norm weights, embedding rows) fault their pages back in on demand.
   void finish_loading();
 
   // Dtype of the checkpoint's floating-point weights ("F32", "BF16", ...) as found at load time.
@@ -43,7 +44,11 @@ class Weights {
   SafeTensorsFile file_;
   std::deque<std::vector<float>> widened_;  // owned float32 copies of bf16/f16 tensors
   std::string stored_dtype_;
-  bool in_place_ = false;  // some f32 view points into the mapping
+
 };
+
+// Packs the nn.Linear `<name>.weight` [n, k] (and `<name>.bias` [n] when `bias`) into `out`.
+void pack_linear(Weights& w, cpu::PackedLinear& out, const std::string& name, int64_t n, int64_t k, bool bias,
+                 cpu::Precision precision);
 
 }  // namespace tether::models

@@ -1,0 +1,87 @@
+// PackedLinear: oneDNN matmul with weights packed once, against a double-precision reference, fp32 and bf16.
+#include <gtest/gtest.h>
+
+#include <cmath>
+#include <random>
+#include <vector>
+
+#include "backend/cpu/packed_linear.h"
+#include "core/dtype.h"
+
+using namespace tether;
+using namespace tether::cpu;
+
+namespace {
+
+std::vector<float> random_vec(std::size_t n, std::mt19937& g) {
+  std::normal_distribution<float> d(0.f, 1.f);
+  std::vector<float> v(n);
+  for (auto& x : v) x = d(g);
+  return v;
+}
+
+// y = x W^T + b (+ y0), in double; `round` rounds x and W to bf16 first, as the bf16 path does.
+std::vector<double> reference(const std::vector<float>& x, const std::vector<float>& w, const std::vector<float>& b,
+                              const std::vector<float>& y0, int64_t m, int64_t n, int64_t k, bool round) {
+  auto r = [&](float v) { return round ? double(bf16_to_f32(f32_to_bf16(v))) : double(v); };
+  std::vector<double> y(std::size_t(m * n));
+  for (int64_t i = 0; i < m; ++i)
+    for (int64_t j = 0; j < n; ++j) {
+      double acc = b.empty() ? 0.0 : b[j];
+      for (int64_t t = 0; t < k; ++t) acc += r(x[i * k + t]) * r(w[j * k + t]);
+      y[i * n + j] = acc + (y0.empty() ? 0.0 : y0[i * n + j]);
+    }
+  return y;
+}
+
+}  // namespace
+
+TEST(PackedLinear, MatchesReferenceAcrossShapesAndModes) {
+  std::mt19937 g(7);
+  struct Shape {
+    int64_t m, n, k;
+  };
+  for (const Shape s : {Shape{1, 7, 5}, Shape{50, 96, 72}, Shape{241, 64, 96}, Shape{3, 130, 33}}) {
+    for (Precision prec : {Precision::fp32, Precision::bf16}) {
+      for (bool with_bias : {false, true}) {
+        for (bool accumulate : {false, true}) {
+          const auto x = random_vec(std::size_t(s.m * s.k), g), w = random_vec(std::size_t(s.n * s.k), g);
+          const auto b = with_bias ? random_vec(std::size_t(s.n), g) : std::vector<float>{};
+          const auto y0 = accumulate ? random_vec(std::size_t(s.m * s.n), g) : std::vector<float>{};
+          PackedLinear lin;
+          lin.pack(w.data(), s.n, s.k, with_bias ? b.data() : nullptr, prec);
+          std::vector<float> y = accumulate ? y0 : std::vector<float>(std::size_t(s.m * s.n), 123.f);
+          lin.forward(x.data(), s.m, y.data(), accumulate);
+          const auto want = reference(x, w, b, y0, s.m, s.n, s.k, prec == Precision::bf16);
+          double diff = 0;
+          for (std::size_t i = 0; i < y.size(); ++i) diff = std::max(diff, std::fabs(double(y[i]) - want[i]));
+          // bf16 inputs are exact after rounding; only the float32 accumulation order differs from the reference.
+          EXPECT_LT(diff, 2e-5 * std::sqrt(double(s.k))) << precision_name(prec) << " m=" << s.m << " n=" << s.n
+                                                         << " k=" << s.k << " bias=" << with_bias << " acc=" << accumulate;
+        }
+      }
+    }
+  }
+}
+
+TEST(PackedLinear, WritesIntoAWiderBuffer) {
+  std::mt19937 g(3);
+  const int64_t m = 4, n = 6, k = 8, ldy = 10;
+  const auto x = random_vec(m * k, g), w = random_vec(n * k, g);
+  PackedLinear lin;
+  lin.pack(w.data(), n, k, nullptr, Precision::fp32);
+  std::vector<float> y(std::size_t(m * ldy), -7.f);
+  lin.forward(x.data(), m, y.data(), false, ldy);
+  const auto want = reference(x, w, {}, {}, m, n, k, false);
+  for (int64_t i = 0; i < m; ++i) {
+    for (int64_t j = 0; j < n; ++j) EXPECT_NEAR(y[i * ldy + j], want[i * n + j], 1e-5);
+    for (int64_t j = n; j < ldy; ++j) EXPECT_EQ(y[i * ldy + j], -7.f);  // columns past n untouched
+  }
+}
+
+TEST(PackedLinear, RejectsMisuse) {
+  PackedLinear lin;
+  float x = 1, y = 0;
+  EXPECT_THROW(lin.forward(&x, 1, &y), std::exception);
+  EXPECT_THROW(lin.pack(&x, 0, 1, nullptr, Precision::fp32), std::exception);
+}
