@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import atexit
 import http.client
 import json
 import os
@@ -21,6 +22,16 @@ DEMO = REPO / "models" / "demo" / "smolvla-demo"
 SAMPLE_PNG = REPO / "models" / "demo" / "sample.png"
 FIXTURE_IMAGES = REPO / "tests" / "fixtures" / "vision"
 LISTENING = re.compile(r"^tether serve: listening on http://(\S+):(\d+)\s*$")
+
+
+_RUNNING: "set[ServeProcess]" = set()
+
+
+@atexit.register
+def _kill_leftovers() -> None:
+    # An interrupted test run must not leave servers behind.
+    for proc in list(_RUNNING):
+        proc.kill()
 
 
 def binary_path() -> Path:
@@ -48,6 +59,7 @@ class ServeProcess:
         self.proc = subprocess.Popen(
             self.cmd, stdout=subprocess.PIPE, stderr=self.stderr_file, stdin=subprocess.DEVNULL, env=full_env
         )
+        _RUNNING.add(self)
         self.stdout_lines: "queue.Queue[Optional[str]]" = queue.Queue()
         self.stdout_seen: List[str] = []
         threading.Thread(target=self._drain_stdout, daemon=True).start()
@@ -106,7 +118,9 @@ class ServeProcess:
         if self.proc.poll() is None:
             self.proc.send_signal(sig)
         try:
-            return self.proc.wait(timeout=timeout)
+            rc = self.proc.wait(timeout=timeout)
+            _RUNNING.discard(self)
+            return rc
         except subprocess.TimeoutExpired:
             self.kill()
             raise AssertionError(f"server still running {timeout} s after signal {sig}; stderr: {self.stderr_tail()}")
@@ -115,6 +129,7 @@ class ServeProcess:
         if self.proc.poll() is None:
             self.proc.kill()
             self.proc.wait(timeout=10)
+        _RUNNING.discard(self)
 
 
 def request(

@@ -8,6 +8,7 @@ import concurrent.futures
 import hashlib
 import json
 import re
+import shutil
 import signal
 import socket
 import subprocess
@@ -32,7 +33,12 @@ from serve_process import (
     raw_exchange,
     request,
 )
-from tether_client import AuthenticationError, InvalidRequestError, ServerBusyError, TetherClient
+from tether_client import (
+    AuthenticationError,
+    InvalidRequestError,
+    RequestTimeoutError,
+    TetherClient,
+)
 
 pytestmark = [
     pytest.mark.integration,
@@ -189,13 +195,47 @@ def test_image_and_images_short_and_full_names_agree(server):
     np.testing.assert_array_equal(results[0], results[2])
 
 
-def test_missing_camera_runs_with_a_warning(server):
-    data = ok_json(post_act(server, act_body(image=_UNSET)))
+def test_no_image_at_all_is_refused(server):
+    # Upstream lerobot refuses a batch without any camera image; so does the server.
+    expect_error(post_act(server, act_body(image=_UNSET)), 400, "missing_field")
+    expect_error(post_act(server, act_body(image=_UNSET, images={})), 400, "missing_field")
+
+
+@pytest.fixture(scope="module")
+def two_camera_server(tmp_path_factory):
+    """The demo checkpoint declaring a second camera, `wrist` (the vision tower is shared by all cameras, so
+    the weights fit as they are)."""
+    ckpt = tmp_path_factory.mktemp("two_cam") / "smolvla-two-cam"
+    shutil.copytree(DEMO, ckpt)
+    wrist = {"type": "VISUAL", "shape": [3, 480, 640]}
+    config = json.loads((ckpt / "config.json").read_text())
+    config["input_features"] = {CAMERA: config["input_features"][CAMERA], "observation.images.wrist": wrist,
+                                **{k: v for k, v in config["input_features"].items() if k != CAMERA}}
+    (ckpt / "config.json").write_text(json.dumps(config, indent=2))
+    pre = json.loads((ckpt / "policy_preprocessor.json").read_text())
+    for step in pre["steps"]:
+        if "features" in step.get("config", {}):
+            step["config"]["features"]["observation.images.wrist"] = wrist
+    (ckpt / "policy_preprocessor.json").write_text(json.dumps(pre, indent=2))
+    proc = ServeProcess(checkpoint=ckpt)
+    yield proc
+    assert proc.stop() == 0, proc.stderr_tail()
+
+
+def test_missing_camera_runs_with_a_warning(two_camera_server):
+    cfg = json.loads(request(two_camera_server.port, "GET", "/config")[2])
+    assert cfg["cameras"] == [CAMERA, "observation.images.wrist"]
+    data = ok_json(post_act(two_camera_server, act_body(image=_UNSET, images={"front": SAMPLE_B64})))
     check_actions(data)
-    assert data["warnings"], data
-    assert any("front" in w for w in data["warnings"]), data["warnings"]
-    data_empty = ok_json(post_act(server, act_body(image=_UNSET, images={})))
-    assert data_empty["warnings"]
+    assert len(data["warnings"]) == 1 and "wrist" in data["warnings"][0], data["warnings"]
+    # "image" means the first camera.
+    via_image = ok_json(post_act(two_camera_server, act_body()))
+    np.testing.assert_array_equal(check_actions(via_image), check_actions(data))
+    assert via_image["warnings"] == data["warnings"]
+    both = ok_json(post_act(two_camera_server, act_body(image=_UNSET, images={"front": SAMPLE_B64,
+                                                                              "wrist": SAMPLE_B64})))
+    assert both["warnings"] == []
+    assert not np.array_equal(check_actions(both), check_actions(data))
 
 
 def test_seed_reproducibility(server):
@@ -393,6 +433,7 @@ def test_invalid_tether_request_id_is_replaced(server):
         ("seed string", act_body(seed="7"), "invalid_field"),
         ("episode id not a string", act_body(episode_id=12), "invalid_field"),
     ],
+    ids=lambda v: v if isinstance(v, str) and len(v) < 40 else "",
 )
 def test_act_400_codes(server, name, body, code):
     expect_error(post_act(server, body), 400, code)
@@ -588,7 +629,7 @@ def test_bounded_burst_gives_answers_or_clean_queue_full():
 
         # The retrying client gets every request through the same burst.
         def via_client(i: int) -> np.ndarray:
-            with TetherClient(proc.url, api_key="", backoff=0.02, max_retry_wait=60) as client:
+            with TetherClient(proc.url, api_key="", backoff=0.02, max_retry_wait=60, timeout=60) as client:
                 return client.act(SAMPLE_PNG, state=STATE, instruction=INSTRUCTION, seed=99).actions
 
         with concurrent.futures.ThreadPoolExecutor(16) as pool:
@@ -708,5 +749,73 @@ def test_ready_503_body_shape_while_not_ready():
             check_actions(ok_json((status, headers, body)))
         status, _, body = request(proc.port, "GET", "/live")
         assert (status, json.loads(body)) == (200, {"live": True})
+    finally:
+        assert proc.stop() == 0, proc.stderr_tail()
+
+
+# -- timeouts -------------------------------------------------------------------------------------------------
+
+
+@pytest.mark.slow
+def test_request_deadline_gives_408():
+    # One request per forward pass and a 1 ms deadline: of a burst, those left waiting in the queue time out.
+    proc = ServeProcess(["--request-timeout-ms", "1", "--max-batch", "1"])
+    try:
+        tiny = {"data": base64.b64encode(b"\x80" * 12).decode(), "shape": [2, 2, 3]}
+        body = act_body(image=tiny)
+        with concurrent.futures.ThreadPoolExecutor(8) as pool:
+            results = list(pool.map(lambda i: post_act(proc, body), range(12), timeout=120))
+        statuses = [r[0] for r in results]
+        assert set(statuses) <= {200, 408}, statuses
+        assert 408 in statuses, statuses
+        for r in results:
+            if r[0] == 408:
+                expect_error(r, 408, "request_timeout")
+            else:
+                check_actions(ok_json(r))
+        with TetherClient(proc.url, api_key="", retries=0) as client:
+            with concurrent.futures.ThreadPoolExecutor(8) as pool:
+                futures = [pool.submit(client.act, tiny_frame(), state=STATE, instruction="x") for _ in range(4)]
+            errors = [f.exception() for f in futures if f.exception() is not None]
+            assert all(isinstance(e, RequestTimeoutError) and e.code == "request_timeout" for e in errors), errors
+    finally:
+        assert proc.stop() == 0, proc.stderr_tail()
+
+
+def tiny_frame() -> np.ndarray:
+    return np.full((2, 2, 3), 128, dtype=np.uint8)
+
+
+def test_read_timeout_and_idle_keep_alive():
+    proc = ServeProcess(["--read-timeout-ms", "300"])
+    try:
+        # A body that stalls half-way: the connection is dropped after the read timeout (with a 408 if any).
+        with socket.create_connection(("127.0.0.1", proc.port), timeout=5) as s:
+            s.sendall(b"POST /act HTTP/1.1\r\nHost: x\r\nContent-Length: 100\r\n\r\n{\"instruction\"")
+            start = time.monotonic()
+            data = b""
+            while True:
+                chunk = s.recv(65536)
+                if not chunk:
+                    break
+                data += chunk
+            waited = time.monotonic() - start
+        assert 0.2 <= waited < 3, waited
+        if data:
+            expect_error(parse_raw_response(data), 408, "request_timeout")
+        # Headers that never end: dropped the same way.
+        with socket.create_connection(("127.0.0.1", proc.port), timeout=5) as s:
+            s.sendall(b"GET /health HTTP/1.1\r\nHost: x\r\n")
+            start = time.monotonic()
+            while s.recv(65536):
+                pass
+            assert time.monotonic() - start < 3
+        # The server closes an idle keep-alive connection; the client reopens it without failing the call.
+        with TetherClient(proc.url, api_key="") as client:
+            first = client.act(tiny_frame(), state=STATE, instruction=INSTRUCTION, seed=2)
+            time.sleep(0.6)
+            second = client.act(tiny_frame(), state=STATE, instruction=INSTRUCTION, seed=2)
+            np.testing.assert_array_equal(first.actions, second.actions)
+        assert request(proc.port, "GET", "/health")[0] == 200
     finally:
         assert proc.stop() == 0, proc.stderr_tail()

@@ -6,7 +6,6 @@ import contextlib
 import email.utils
 import http.client
 import json
-import math
 import numbers
 import os
 import random
@@ -15,7 +14,7 @@ import threading
 import time
 import uuid
 from dataclasses import dataclass, field
-from typing import Any, Dict, Iterator, List, Mapping, Optional, Sequence, Tuple, Union
+from typing import Any, Dict, Iterator, List, Mapping, Optional, Sequence, Union
 from urllib.parse import urlsplit
 
 import numpy as np
@@ -208,39 +207,31 @@ class TetherClient:
             headers.update(extra)
         return headers
 
-    def _exchange_once(
-        self, method: str, path: str, body: Optional[bytes], headers: Dict[str, str]
-    ) -> Tuple[_Response, bool]:
-        """One request on the current connection. Returns (response, reused) or raises OSError/HTTPException;
-        ``reused`` tells the caller whether a failure may be a keep-alive connection the server had closed."""
+    def _exchange_once(self, method: str, path: str, body: Optional[bytes], headers: Dict[str, str]) -> _Response:
+        """One request on the current connection; raises OSError/HTTPException when no answer came."""
         conn = self._connection()
-        reused = self._conn_uses > 0
         self._conn_uses += 1
         try:
             conn.request(method, self._prefix + path, body=body, headers=headers)
         except (BrokenPipeError, ConnectionResetError):
             # The server may answer early (413, 401) and close before reading the whole body; its answer can
-            # still be waiting in the socket.
-            try:
-                resp = conn.getresponse()
-            except Exception:
-                raise
+            # still be waiting in the socket; when it is not, reading it fails and the caller handles that.
+            resp = conn.getresponse()
             data = resp.read()
             self._drop_connection()
-            return _Response(resp.status, {k.lower(): v for k, v in resp.getheaders()}, data), False
+            return _Response(resp.status, {k.lower(): v for k, v in resp.getheaders()}, data)
         resp = conn.getresponse()
         data = resp.read()
         if resp.will_close:
             self._drop_connection()
-        return _Response(resp.status, {k.lower(): v for k, v in resp.getheaders()}, data), reused
+        return _Response(resp.status, {k.lower(): v for k, v in resp.getheaders()}, data)
 
     def _exchange(self, method: str, path: str, body: Optional[bytes], headers: Dict[str, str]) -> _Response:
         with self._lock:
             for attempt in range(2):
                 reused = self._conn is not None and self._conn_uses > 0
                 try:
-                    response, _ = self._exchange_once(method, path, body, headers)
-                    return response
+                    return self._exchange_once(method, path, body, headers)
                 except socket.timeout as e:
                     self._drop_connection()
                     raise TetherTimeoutError(
