@@ -178,7 +178,7 @@ def test_png_and_raw_array_of_the_same_pixels_agree(server):
     np.testing.assert_array_equal(from_png, from_raw)
     # And a synthetic frame through the client's numpy path and through a PNG of it.
     frame = np.random.default_rng(3).integers(0, 256, size=(37, 53, 3), dtype=np.uint8)
-    with TetherClient(server.url, api_key="") as client:
+    with TetherClient(server.url, api_key="", timeout=60) as client:
         a = client.act(frame, state=STATE, instruction=INSTRUCTION, seed=5)
         b = client.act(encode_png(frame), state=STATE, instruction=INSTRUCTION, seed=5)
     assert a.actions.shape == (50, 6)
@@ -253,7 +253,7 @@ def test_seed_reproducibility(server):
 
 
 def test_episode_id_is_echoed(server):
-    with TetherClient(server.url, api_key="") as client:
+    with TetherClient(server.url, api_key="", timeout=60) as client:
         with client.episode() as ep:
             r1 = client.act(SAMPLE_PNG, state=STATE, instruction=INSTRUCTION)
             r2 = client.act(SAMPLE_PNG, state=STATE, instruction=INSTRUCTION)
@@ -263,7 +263,7 @@ def test_episode_id_is_echoed(server):
 
 
 def test_client_keeps_one_connection(server):
-    with TetherClient(server.url, api_key="") as client:
+    with TetherClient(server.url, api_key="", timeout=60) as client:
         client.act(SAMPLE_PNG, state=STATE, instruction=INSTRUCTION)
         sock = client._conn.sock  # type: ignore[union-attr]
         for _ in range(3):
@@ -291,7 +291,7 @@ def test_health_ready_live(server):
     assert (status, json.loads(body)) == (200, {"ready": True})
     status, _, body = request(server.port, "GET", "/live")
     assert (status, json.loads(body)) == (200, {"live": True})
-    with TetherClient(server.url, api_key="") as client:
+    with TetherClient(server.url, api_key="", timeout=60) as client:
         assert client.ready() and client.live() and client.health()["state"] == "ready"
 
 
@@ -473,7 +473,7 @@ def test_header_over_the_default_limit(server):
 
 
 def test_client_exceptions_from_the_real_server(server):
-    with TetherClient(server.url, api_key="") as client:
+    with TetherClient(server.url, api_key="", timeout=60) as client:
         with pytest.raises(InvalidRequestError) as info:
             client.act(images={"left": SAMPLE_PNG}, state=STATE, instruction=INSTRUCTION, request_id="cl-1")
         assert (info.value.status, info.value.code, info.value.request_id) == (400, "unknown_camera", "cl-1")
@@ -518,7 +518,7 @@ def test_body_limit(small_server):
     expect_error(parse_raw_response(raw_exchange(small_server.port, chunked)), 413, "body_too_large")
     limits = json.loads(request(small_server.port, "GET", "/config")[2])["limits"]
     assert limits["max_body_bytes"] == 4096
-    with TetherClient(small_server.url, api_key="") as client:
+    with TetherClient(small_server.url, api_key="", timeout=60) as client:
         with pytest.raises(InvalidRequestError) as info:
             client.act(np.zeros((64, 64, 3), np.uint8), state=STATE, instruction=INSTRUCTION)
         assert (info.value.status, info.value.code) == (413, "body_too_large")
@@ -563,10 +563,10 @@ def _auth_checks(server: ServeProcess, key: str) -> None:
     assert metric(after, "tether_request_duration_seconds_count", stage="total") == metric(
         before, "tether_request_duration_seconds_count", stage="total") + 2
 
-    with TetherClient(server.url, api_key=key) as client:
+    with TetherClient(server.url, api_key=key, timeout=60) as client:
         assert client.act(SAMPLE_PNG, state=STATE, instruction=INSTRUCTION).actions.shape == (50, 6)
         assert client.config()["state_dim"] == 6
-    with TetherClient(server.url, api_key="nope") as client:
+    with TetherClient(server.url, api_key="nope", timeout=60) as client:
         with pytest.raises(AuthenticationError) as info:
             client.act(SAMPLE_PNG, state=STATE, instruction=INSTRUCTION)
         assert (info.value.status, info.value.code) == (401, "unauthorized")
@@ -722,7 +722,7 @@ def test_health_states_and_client_retry_while_warming():
 
     proc = ServeProcess(wait_ready=False)
     try:
-        with TetherClient(proc.url, api_key="", backoff=0.01, max_retry_wait=60) as client:
+        with TetherClient(proc.url, api_key="", backoff=0.01, max_retry_wait=60, timeout=60) as client:
             result = client.act(SAMPLE_PNG, state=STATE, instruction=INSTRUCTION, seed=1)
         assert result.actions.shape == (50, 6)
         samples = parse_metrics(request(proc.port, "GET", "/metrics")[2].decode())
@@ -773,7 +773,7 @@ def test_request_deadline_gives_408():
                 expect_error(r, 408, "request_timeout")
             else:
                 check_actions(ok_json(r))
-        with TetherClient(proc.url, api_key="", retries=0) as client:
+        with TetherClient(proc.url, api_key="", retries=0, timeout=60) as client:
             with concurrent.futures.ThreadPoolExecutor(8) as pool:
                 futures = [pool.submit(client.act, tiny_frame(), state=STATE, instruction="x") for _ in range(4)]
             errors = [f.exception() for f in futures if f.exception() is not None]
@@ -811,7 +811,7 @@ def test_read_timeout_and_idle_keep_alive():
                 pass
             assert time.monotonic() - start < 3
         # The server closes an idle keep-alive connection; the client reopens it without failing the call.
-        with TetherClient(proc.url, api_key="") as client:
+        with TetherClient(proc.url, api_key="", timeout=60) as client:
             first = client.act(tiny_frame(), state=STATE, instruction=INSTRUCTION, seed=2)
             time.sleep(0.6)
             second = client.act(tiny_frame(), state=STATE, instruction=INSTRUCTION, seed=2)
