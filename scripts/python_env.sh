@@ -10,7 +10,7 @@ venv=.venv
 stamp_file="$venv/.tether-stamp"
 
 # What the environment depends on; a change to any of these rebuilds it.
-stamp="$( { "$python" -c 'import sys; print(sys.version)'; cat python/requirements-test.txt python/pyproject.toml; } \
+stamp="$( { "$python" -c 'import sys; print(sys.version)'; cat "$0" python/requirements-test.txt python/pyproject.toml; } \
   | sha256sum | cut -d' ' -f1)"
 if [ -f "$stamp_file" ] && [ "$(cat "$stamp_file")" = "$stamp" ] && [ -x "$venv/bin/python" ]; then
   exit 0
@@ -25,6 +25,10 @@ if ! "$python" -c 'import venv, ensurepip' >/dev/null 2>&1; then
   DEBIAN_FRONTEND=noninteractive $sudo apt-get install -y -qq --no-install-recommends python3-venv >/dev/null
 fi
 
+# A venv made by another interpreter (another Python version) is made anew.
+if [ -x "$venv/bin/python" ] && [ "$("$venv/bin/python" -c 'import sys; print(sys.version)')" != "$("$python" -c 'import sys; print(sys.version)')" ]; then
+  rm -rf "$venv"
+fi
 if [ ! -x "$venv/bin/python" ]; then
   "$python" -m venv "$venv"
 fi

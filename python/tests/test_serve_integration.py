@@ -722,6 +722,23 @@ def test_health_states_and_client_retry_while_warming():
 
     proc = ServeProcess(wait_ready=False)
     try:
+        not_ready_seen = 0
+        deadline = time.monotonic() + 60
+        while time.monotonic() < deadline:
+            status, headers, body = post_act(proc, act_body(image={"data": "gICA", "shape": [1, 1, 3]}))
+            if status == 200:
+                break
+            expect_error((status, headers, body), 503, "not_ready")
+            assert headers.get("retry-after") == "1"
+            not_ready_seen += 1
+            time.sleep(0.002)
+        assert status == 200
+        print(f"/act answered 503 not_ready {not_ready_seen} times before ready")
+    finally:
+        assert proc.stop() == 0, proc.stderr_tail()
+
+    proc = ServeProcess(wait_ready=False)
+    try:
         with TetherClient(proc.url, api_key="", backoff=0.01, max_retry_wait=60, timeout=60) as client:
             result = client.act(SAMPLE_PNG, state=STATE, instruction=INSTRUCTION, seed=1)
         assert result.actions.shape == (50, 6)
