@@ -51,17 +51,26 @@ build/release/tether bench "$checkpoint" "${image_args[@]}" --state="$state" --i
   --noise "$work/noise.safetensors" --warmup "$warmup" --iterations "$iterations" --json \
   --out "$work/tether.safetensors" > "$work/tether.json"
 
+echo "tether (bf16): $iterations runs after $warmup warm-up..." >&2
+build/release/tether bench "$checkpoint" "${image_args[@]}" --state="$state" --instruction "$instruction" \
+  --noise "$work/noise.safetensors" --warmup "$warmup" --iterations "$iterations" --json --precision bf16 \
+  --out "$work/tether_bf16.safetensors" > "$work/tether_bf16.json"
+
 tools/oracle/run.sh - "$work" <<'PY'
 import json, sys
 from safetensors.torch import load_file
 w = sys.argv[1]
-ref, tet = json.load(open(w + "/ref.json")), json.load(open(w + "/tether.json"))
-a, b = load_file(w + "/ref.safetensors")["actions"], load_file(w + "/tether.safetensors")["actions"]
-diff = (a.reshape(b.shape) - b).abs().max().item()
-r_ms, t_ms = ref["median_ms"], tet["latency_ms"]["p50"]
-print(f"{'engine':<22}{'median ms':>12}{'peak RSS MB':>14}")
-print(f"{'lerobot (PyTorch)':<22}{r_ms:>12.1f}{ref['peak_rss_mb']:>14.0f}")
-print(f"{'tether fp32':<22}{t_ms:>12.1f}{tet['peak_rss_mb']:>14.0f}")
-print(f"speed-up {r_ms / t_ms:.2f}x   RSS ratio {tet['peak_rss_mb'] / ref['peak_rss_mb']:.2f}   max |diff| {diff:.3e}")
-print("tether stages ms: " + "  ".join(f"{k} {v:.1f}" for k, v in tet["stages_ms"].items()))
+ref = json.load(open(w + "/ref.json"))
+a = load_file(w + "/ref.safetensors")["actions"]
+r_ms = ref["median_ms"]
+print(f"{'engine':<22}{'median ms':>12}{'speed-up':>10}{'peak RSS MB':>14}{'RSS ratio':>11}{'max |diff| vs lerobot':>24}")
+print(f"{'lerobot (PyTorch fp32)':<22}{r_ms:>12.1f}{1.0:>9.2f}x{ref['peak_rss_mb']:>14.0f}{1.0:>11.2f}{'-':>24}")
+for name, tag in (("tether fp32", "tether"), ("tether bf16", "tether_bf16")):
+    t = json.load(open(f"{w}/{tag}.json"))
+    b = load_file(f"{w}/{tag}.safetensors")["actions"]
+    diff = (a.reshape(b.shape) - b).abs().max().item()
+    t_ms = t["latency_ms"]["p50"]
+    print(f"{name:<22}{t_ms:>12.1f}{r_ms / t_ms:>9.2f}x{t['peak_rss_mb']:>14.0f}{t['peak_rss_mb'] / ref['peak_rss_mb']:>11.2f}{diff:>24.3e}")
+    print("    stages ms: " + "  ".join(f"{k} {v:.1f}" for k, v in t["stages_ms"].items()))
+print(f"max |action| {a.abs().max().item():.3f} (robot units)")
 PY

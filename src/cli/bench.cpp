@@ -21,6 +21,7 @@ namespace {
 struct BenchArgs {
   std::string checkpoint;
   ObservationArgs observation;
+  std::string precision = "fp32";
   int iterations = 100, warmup = 5, batch = 1;
   bool json = false;
   std::string out;
@@ -44,7 +45,7 @@ int run_bench(const BenchArgs& a) {
   if (a.iterations < 1 || a.warmup < 0 || a.batch < 1)
     throw Error(ErrorCode::invalid_argument, "--iterations and --batch must be >= 1, --warmup >= 0");
   const auto t0 = std::chrono::steady_clock::now();
-  auto policy = policy::Policy::load(a.checkpoint);
+  auto policy = policy::Policy::load(a.checkpoint, load_options(a.precision));
   const double load_ms = std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - t0).count();
   const policy::Observation obs = a.observation.build(*policy);
   const std::vector<policy::Observation> batch(std::size_t(a.batch), obs);
@@ -74,6 +75,7 @@ int run_bench(const BenchArgs& a) {
   const Json report = {
       {"checkpoint", a.checkpoint},
       {"family", policy->spec().family},
+      {"inference_mode", inference_mode(policy->spec())},
       {"batch", a.batch},
       {"iterations", a.iterations},
       {"warmup", a.warmup},
@@ -96,8 +98,9 @@ int run_bench(const BenchArgs& a) {
     std::cout << report.dump(2) << "\n";
     return kExitOk;
   }
-  std::printf("%s  (%s, batch %d, %d iterations after %d warm-up, %s x%d threads)\n", a.checkpoint.c_str(),
-              policy->spec().family.c_str(), a.batch, a.iterations, a.warmup, cpu::blas_name(), cpu::blas_threads());
+  std::printf("%s  (%s, %s, batch %d, %d iterations after %d warm-up, %s x%d threads)\n", a.checkpoint.c_str(),
+              policy->spec().family.c_str(), inference_mode(policy->spec()).c_str(), a.batch, a.iterations, a.warmup,
+              cpu::blas_name(), cpu::blas_threads());
   std::printf("  latency ms   mean %.2f  p50 %.2f  p95 %.2f  p99 %.2f  max %.2f\n", report["latency_ms"]["mean"].get<double>(),
               report["latency_ms"]["p50"].get<double>(), report["latency_ms"]["p95"].get<double>(),
               report["latency_ms"]["p99"].get<double>(), report["latency_ms"]["max"].get<double>());
@@ -120,6 +123,7 @@ Verb add_bench(CLI::App& app) {
   sub->add_flag("--json", args->json, "Print JSON");
   sub->add_option("--out", args->out, "Write the last action chunk(s) to this safetensors file ('actions')");
   args->observation.add_to(sub, /*required=*/false);
+  add_precision_flag(sub, args->precision);
   return {sub, [args] { return run_bench(*args); }};
 }
 

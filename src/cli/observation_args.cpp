@@ -22,6 +22,22 @@ std::vector<float> parse_floats(const std::string& text, const std::string& flag
   return out;
 }
 
+void add_precision_flag(CLI::App* sub, std::string& value) {
+  sub->add_option("--precision", value, "fp32 (reference) or bf16 (bf16 weights and GEMM inputs, float32 accumulation)")
+      ->check(CLI::IsMember({"fp32", "bf16"}))
+      ->capture_default_str();
+}
+
+models::LoadOptions load_options(const std::string& precision) {
+  models::LoadOptions o;
+  o.precision = precision == "bf16" ? cpu::Precision::bf16 : cpu::Precision::fp32;
+  return o;
+}
+
+std::string inference_mode(const models::ModelSpec& spec) {
+  return std::string("cpu-") + cpu::precision_name(spec.precision);
+}
+
 namespace {
 
 // Accepts the checkpoint's camera key or its short form ("camera1" for "observation.images.camera1").

@@ -16,12 +16,13 @@ namespace {
 struct PredictArgs {
   std::string checkpoint;
   ObservationArgs observation;
+  std::string precision = "fp32";
   bool json = false;
 };
 
 int run_predict(const PredictArgs& a) {
   const auto t0 = std::chrono::steady_clock::now();
-  auto policy = policy::Policy::load(a.checkpoint);
+  auto policy = policy::Policy::load(a.checkpoint, load_options(a.precision));
   const double load_ms = std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - t0).count();
   for (const auto& w : policy->load_warnings()) std::cerr << "warning: " << w << "\n";
   const auto& spec = policy->spec();
@@ -48,7 +49,7 @@ int run_predict(const PredictArgs& a) {
                       {"action_dim", chunk.action_dim},
                       {"latency_ms", latency},
                       {"model", {{"family", spec.family}, {"weights_dtype", spec.weights_dtype}}},
-                      {"inference_mode", "cpu-fp32"},
+                      {"inference_mode", inference_mode(spec)},
                       {"warnings", chunk.warnings}};
     std::cout << out.dump() << "\n";
     return kExitOk;
@@ -72,6 +73,7 @@ Verb add_predict(CLI::App& app) {
   CLI::App* sub = app.add_subcommand("predict", "Run one observation through a checkpoint and print the action chunk");
   sub->add_option("checkpoint", args->checkpoint, "Checkpoint directory (LeRobot layout)")->required();
   args->observation.add_to(sub, /*required=*/true);
+  add_precision_flag(sub, args->precision);
   sub->add_flag("--json", args->json, "Print JSON instead of a table");
   return {sub, [args] { return run_predict(*args); }};
 }

@@ -9,7 +9,7 @@ namespace tether::policy {
 
 namespace fs = std::filesystem;
 
-std::unique_ptr<Policy> Policy::load(const std::string& checkpoint_dir) {
+std::unique_ptr<Policy> Policy::load(const std::string& checkpoint_dir, const models::LoadOptions& options) {
   if (!fs::is_directory(checkpoint_dir))
     throw Error(ErrorCode::not_found, checkpoint_dir + ": not a checkpoint directory");
   const std::string config_path = (fs::path(checkpoint_dir) / "config.json").string();
@@ -17,7 +17,7 @@ std::unique_ptr<Policy> Policy::load(const std::string& checkpoint_dir) {
   const Json config = read_json_file(config_path);
   auto p = std::unique_ptr<Policy>(new Policy());
   p->dir_ = checkpoint_dir;
-  p->model_ = models::load_model(checkpoint_dir, config);
+  p->model_ = models::load_model(checkpoint_dir, config, options);
   std::vector<std::string> post_warnings;
   p->pre_ = Normalizer::load(checkpoint_dir, "policy_preprocessor.json", "normalizer_processor", config, p->warnings_);
   p->post_ = Normalizer::load(checkpoint_dir, "policy_postprocessor.json", "unnormalizer_processor", config,

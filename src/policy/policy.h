@@ -33,7 +33,7 @@ struct Prediction {
 
 class Policy {
  public:
-  static std::unique_ptr<Policy> load(const std::string& checkpoint_dir);
+  static std::unique_ptr<Policy> load(const std::string& checkpoint_dir, const models::LoadOptions& options = {});
 
   const models::ModelSpec& spec() const { return model_->spec(); }
   const std::string& directory() const { return dir_; }

@@ -1,6 +1,7 @@
 // `tether predict` end to end through the binary: output, reproducibility and every user error's exit code.
 #include <gtest/gtest.h>
 
+#include <cmath>
 #include <filesystem>
 #include <fstream>
 
@@ -44,6 +45,24 @@ TEST(PredictCli, SeedMakesRunsReproducible) {
   const Json c = Json::parse(run_tether("predict " + kGood + " --seed 12 --json").out);
   EXPECT_EQ(a["actions"], b["actions"]);
   EXPECT_NE(a["actions"], c["actions"]);
+}
+
+TEST(PredictCli, Bf16ModeIsReportedAndClose) {
+  const Json f32 = Json::parse(run_tether("predict " + kGood + " --seed 4 --json").out);
+  const CliRun r = run_tether("predict " + kGood + " --seed 4 --json --precision bf16");
+  ASSERT_EQ(r.code, 0) << r.err;
+  const Json bf16 = Json::parse(r.out);
+  EXPECT_EQ(f32["inference_mode"], "cpu-fp32");
+  EXPECT_EQ(bf16["inference_mode"], "cpu-bf16");
+  double diff = 0, scale = 0;
+  for (std::size_t i = 0; i < 50; ++i)
+    for (std::size_t j = 0; j < 6; ++j) {
+      diff = std::max(diff, std::fabs(f32["actions"][i][j].get<double>() - bf16["actions"][i][j].get<double>()));
+      scale = std::max(scale, std::fabs(f32["actions"][i][j].get<double>()));
+    }
+  EXPECT_GT(diff, 0.0);
+  EXPECT_LT(diff, 0.02 * scale);
+  EXPECT_EQ(run_tether("predict " + kGood + " --precision fp8").code, 2);
 }
 
 TEST(PredictCli, ExplicitNoiseFile) {
