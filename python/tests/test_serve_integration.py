@@ -108,6 +108,10 @@ def expect_error(resp: Tuple[int, Dict[str, str], bytes], status: int, code: Opt
     return err
 
 
+def _b64_file(rel: str) -> str:
+    return base64.b64encode((FIXTURE_IMAGES / rel).read_bytes()).decode()
+
+
 def model_hash() -> str:
     return "sha256:" + hashlib.sha256((DEMO / "model.safetensors").read_bytes()).hexdigest()
 
@@ -432,11 +436,35 @@ def test_invalid_tether_request_id_is_replaced(server):
         ("seed not integer", act_body(seed=1.5), "invalid_field"),
         ("seed string", act_body(seed="7"), "invalid_field"),
         ("episode id not a string", act_body(episode_id=12), "invalid_field"),
+        ("seed over uint64", act_body(seed=2**64), "invalid_field"),
+        ("state of booleans", act_body(state=[True] * 6), "invalid_field"),
+        ("camera value null", act_body(image=_UNSET, images={"front": None}), "invalid_field"),
+        ("raw extra key", act_body(image={"data": "gICA", "shape": [1, 1, 3], "x": 1}), "invalid_field"),
+        ("raw shape 2-d", act_body(image={"data": "gICA", "shape": [1, 3]}), "invalid_field"),
+        ("raw shape negative", act_body(image={"data": "gICA", "shape": [-1, 1, 3]}), "invalid_field"),
+        # A huge declared shape must be refused before anything is allocated.
+        ("raw shape huge", act_body(image={"data": "gICA", "shape": [100000, 100000, 3]}), "invalid_field"),
+        ("jpeg bomb", act_body(image=_b64_file("bad/bomb_3600mp.jpg")), "invalid_image"),
+        ("png bomb", act_body(image=_b64_file("bad/bomb_400mp.png")), "invalid_image"),
+        ("cmyk jpeg", act_body(image=_b64_file("bad/cmyk.jpg")), "invalid_image"),
+        ("gif", act_body(image=_b64_file("bad/not_an_image.gif")), "invalid_image"),
+        ("json nested deep", act_body()[:-1] + b', "x": ' + b"[" * 5000 + b"]" * 5000 + b"}", None),
+        ("trailing garbage", act_body() + b"xyz", "bad_json"),
+        ("invalid utf-8", act_body(instruction="\u00ff").replace(b"\\u00ff", b"\xff\xfe"), "bad_json"),
     ],
     ids=lambda v: v if isinstance(v, str) and len(v) < 40 else "",
 )
 def test_act_400_codes(server, name, body, code):
     expect_error(post_act(server, body), 400, code)
+
+
+def test_accepted_edge_values(server):
+    check_actions(ok_json(post_act(server, act_body(seed=2**64 - 1))))
+    check_actions(ok_json(post_act(server, act_body(instruction=""))))
+    check_actions(ok_json(post_act(server, act_body(instruction="pick up the red cube " * 500))))
+    check_actions(ok_json(post_act(server, act_body(image=_b64_file("images/gray8.png")))))
+    data = ok_json(post_act(server, act_body(episode_id="ep-" + "e" * 1000)))
+    assert data["episode_id"] == "ep-" + "e" * 1000
 
 
 def test_nan_token_is_rejected(server):
