@@ -77,19 +77,68 @@ std::optional<std::string> resolve_camera(const std::string& name, const std::ve
   return std::nullopt;
 }
 
-ActRequest parse_act_request(std::string_view body, const models::ModelSpec& spec) {
-  J j;
-  try {
-    // The callback caps nesting before any deep structure is built.
-    j = J::parse(body.begin(), body.end(), [](int depth, J::parse_event_t, J&) {
-      if (depth > kMaxJsonDepth) throw HttpError(400, "bad_json", "JSON nested deeper than " + std::to_string(kMaxJsonDepth) + " levels");
-      return true;
-    });
-  } catch (const HttpError&) {
-    throw;
-  } catch (const J::exception& e) {
-    fail("bad_json", std::string("the body is not valid JSON: ") + e.what());
+namespace {
+
+// Replaces each occurrence of the number `literal` outside strings by `replacement`; false if none was found.
+bool replace_number_token(std::string& text, const std::string& literal, const std::string& replacement) {
+  bool in_string = false, replaced = false;
+  for (std::size_t i = 0; i < text.size(); ++i) {
+    const char c = text[i];
+    if (in_string) {
+      if (c == '\\') ++i;
+      else if (c == '"') in_string = false;
+      continue;
+    }
+    if (c == '"') {
+      in_string = true;
+      continue;
+    }
+    const bool starts_token = i == 0 || std::string_view(",:[ \t\r\n").find(text[i - 1]) != std::string_view::npos;
+    const std::size_t end = i + literal.size();
+    const bool ends_token = end >= text.size() || std::string_view(",]} \t\r\n").find(text[end]) != std::string_view::npos;
+    if (starts_token && ends_token && text.compare(i, literal.size(), literal) == 0) {
+      text.replace(i, literal.size(), replacement);
+      i += replacement.size() - 1;
+      replaced = true;
+    }
   }
+  return replaced;
+}
+
+J parse_json(std::string_view body) {
+  // The callback caps nesting before any deep structure is built.
+  auto depth_guard = [](int depth, J::parse_event_t, J&) {
+    if (depth > kMaxJsonDepth)
+      throw HttpError(400, "bad_json", "JSON nested deeper than " + std::to_string(kMaxJsonDepth) + " levels");
+    return true;
+  };
+  std::string patched;  // only used when a number overflows a double
+  for (int attempt = 0;; ++attempt) {
+    try {
+      return patched.empty() ? J::parse(body.begin(), body.end(), depth_guard) : J::parse(patched, depth_guard);
+    } catch (const HttpError&) {
+      throw;
+    } catch (const J::out_of_range& e) {
+      // Valid JSON whose number is beyond double range (1e999): the value, not the syntax, is wrong, so it is
+      // parsed as the largest double of its sign and judged by the field's own check (state: not a finite float32).
+      const std::string what = e.what();
+      const auto open = what.find('\''), close = what.rfind('\'');
+      if (e.id != 406 || attempt >= 8 || open == std::string::npos || close <= open + 1)
+        fail("bad_json", std::string("the body is not valid JSON: ") + e.what());
+      const std::string literal = what.substr(open + 1, close - open - 1);
+      if (patched.empty()) patched.assign(body);
+      if (!replace_number_token(patched, literal, literal[0] == '-' ? "-1.7976931348623157e308" : "1.7976931348623157e308"))
+        fail("bad_json", std::string("the body is not valid JSON: ") + e.what());
+    } catch (const J::exception& e) {
+      fail("bad_json", std::string("the body is not valid JSON: ") + e.what());
+    }
+  }
+}
+
+}  // namespace
+
+ActRequest parse_act_request(std::string_view body, const models::ModelSpec& spec) {
+  const J j = parse_json(body);
   if (!j.is_object()) fail("bad_json", "the body must be a JSON object, got " + type_name(j));
 
   static const char* const kKnown[] = {"instruction", "state", "images", "image", "episode_id", "seed"};

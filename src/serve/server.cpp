@@ -127,14 +127,32 @@ auto async_predict(runtime::Batcher& batcher, policy::Observation obs, Clock::ti
       token, std::move(obs));
 }
 
+// Counts a request from its header until its response is written (or the connection fails).
+class InFlight {
+ public:
+  InFlight(std::atomic<int>& n, bool active) : n_(active ? &n : nullptr) {
+    if (n_) ++*n_;
+  }
+  ~InFlight() {
+    if (n_) --*n_;
+  }
+  InFlight(const InFlight&) = delete;
+  InFlight& operator=(const InFlight&) = delete;
+
+ private:
+  std::atomic<int>* n_;
+};
+
 }  // namespace
 
 struct Server::Impl {
   ServerOptions opts;
   EngineLoader loader;
   net::io_context ioc;
-  tcp::acceptor acceptor{ioc};
-  net::signal_set signals{ioc};
+  // The acceptor is touched by the accept loop and by shutdown: both run on this strand, never concurrently.
+  net::strand<net::io_context::executor_type> accept_strand = net::make_strand(ioc);
+  tcp::acceptor acceptor{accept_strand};
+  net::signal_set signals{accept_strand};
   Metrics metrics;
 
   std::atomic<HealthState> state{HealthState::loading};
@@ -190,7 +208,7 @@ struct Server::Impl {
     } catch (...) {
       load_error = std::current_exception();
       state.store(HealthState::failed, std::memory_order_release);
-      net::post(ioc, [this] { begin_shutdown(); });
+      net::post(accept_strand, [this] { begin_shutdown(); });
     }
   }
 
@@ -427,6 +445,7 @@ struct Server::Impl {
       stream.expires_after(std::chrono::milliseconds(opts.read_timeout_ms));
       co_await http::async_read_header(stream, buffer, parser, net::redirect_error(net::use_awaitable, ec));
       const auto received = Clock::now();
+      InFlight guard(in_flight, !ec);
       if (!ec && parser.get()[http::field::expect] == "100-continue") {
         // curl and others wait for this before sending a large body.
         http::response<http::empty_body> cont{http::status::continue_, parser.get().version()};
@@ -460,13 +479,11 @@ struct Server::Impl {
         break;
       }
       Request req = parser.release();
-      ++in_flight;
       Response res = co_await handle(req, received);
       const bool keep = req.keep_alive() && !draining.load();
       res.keep_alive(keep);
       stream.expires_after(std::chrono::milliseconds(opts.write_timeout_ms));
       co_await http::async_write(stream, res, net::redirect_error(net::use_awaitable, ec));
-      --in_flight;
       if (ec || !keep) break;
     }
     stream.socket().shutdown(tcp::socket::shutdown_both, ec);
@@ -476,7 +493,7 @@ struct Server::Impl {
   net::awaitable<void> accept_loop() {
     for (;;) {
       beast::error_code ec;
-      tcp::socket socket = co_await acceptor.async_accept(net::redirect_error(net::use_awaitable, ec));
+      tcp::socket socket = co_await acceptor.async_accept(ioc, net::redirect_error(net::use_awaitable, ec));
       if (ec) {
         if (!acceptor.is_open()) co_return;
         continue;  // e.g. too many open files: keep serving the connections we have
@@ -488,6 +505,16 @@ struct Server::Impl {
   void begin_shutdown() {
     if (draining.exchange(true)) return;
     beast::error_code ec;
+    // Connections the kernel has already completed were made before the signal: take them, then stop listening.
+    if (acceptor.is_open()) {
+      acceptor.non_blocking(true, ec);
+      for (int i = 0; i < 4096 && !ec; ++i) {
+        tcp::socket socket(ioc);
+        acceptor.accept(socket, ec);
+        if (!ec) net::co_spawn(ioc, session(std::move(socket)), net::detached);
+      }
+      ec.clear();
+    }
     acceptor.close(ec);
     signals.cancel(ec);
     net::co_spawn(ioc, drain(), net::detached);
@@ -497,7 +524,13 @@ struct Server::Impl {
   net::awaitable<void> drain() {
     const auto until = Clock::now() + std::chrono::milliseconds(opts.shutdown_timeout_ms);
     net::steady_timer timer(ioc);
-    while (in_flight.load() > 0 && Clock::now() < until) {
+    // A request counts as in flight once its header is read; one whose bytes are still being read is caught by
+    // requiring the count to stay at zero for a short quiet period.
+    constexpr auto kQuiet = std::chrono::milliseconds(100);
+    auto idle_since = Clock::now();
+    while (Clock::now() < until) {
+      if (in_flight.load() > 0) idle_since = Clock::now();
+      else if (Clock::now() - idle_since >= kQuiet) break;
       timer.expires_after(std::chrono::milliseconds(10));
       beast::error_code ec;
       co_await timer.async_wait(net::redirect_error(net::use_awaitable, ec));
@@ -541,11 +574,11 @@ void Server::run(bool handle_signals) {
     m.signals.async_wait([&m](const beast::error_code& ec, int sig) {
       if (ec) return;
       std::fprintf(stderr, "tether serve: %s received, finishing in-flight requests\n", sig == SIGINT ? "SIGINT" : "SIGTERM");
-      m.begin_shutdown();
+      net::post(m.accept_strand, [&m] { m.begin_shutdown(); });
     });
   }
-  if (m.stop_requested.load()) m.begin_shutdown();
-  net::co_spawn(m.ioc, m.accept_loop(), net::detached);
+  if (m.stop_requested.load()) net::post(m.accept_strand, [&m] { m.begin_shutdown(); });
+  net::co_spawn(m.accept_strand, m.accept_loop(), net::detached);
   std::vector<std::thread> threads;
   for (int i = 1; i < std::max(1, m.opts.threads); ++i) threads.emplace_back([&m] { m.ioc.run(); });
   m.ioc.run();
@@ -557,7 +590,7 @@ void Server::run(bool handle_signals) {
 
 void Server::stop() {
   impl_->stop_requested = true;
-  net::post(impl_->ioc, [m = impl_.get()] { m->begin_shutdown(); });
+  net::post(impl_->accept_strand, [m = impl_.get()] { m->begin_shutdown(); });
 }
 
 uint16_t Server::port() const { return impl_->bound_port; }

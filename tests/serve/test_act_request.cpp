@@ -204,6 +204,12 @@ TEST(ActRequest, InvalidState) {
   expect_error(j, "invalid_state", "expects 3");
   j["state"] = {1, 2, 1e39};  // finite as a double, infinite as float32
   expect_error(j, "invalid_state", "state[2]");
+  // Beyond double range: valid JSON syntax, an invalid value.
+  expect_error(std::string(R"({"instruction": "x", "state": [1, 1e999, 2], "image": "AA"})"), "invalid_state", "state[1]");
+  expect_error(std::string(R"({"instruction": "x", "state": [1, 2, -1E+999], "image": "AA"})"), "invalid_state", "state[2]");
+  expect_error(std::string(R"({"instruction": "1e999", "state": [1, 2, 3], "image": {"data": "AAAA", "shape": [1, 1, 3]},
+                              "seed": 1e999})"),
+               "invalid_field", "seed");
 }
 
 TEST(ActRequest, InvalidImage) {
