@@ -48,6 +48,8 @@ class FakeHub {
     char c;
     while (::read(out_pipe[0], &c, 1) == 1 && c != '\n') line += c;
     ::close(out_pipe[0]);
+    if (line.empty() || line[0] != '{')
+      throw std::runtime_error("tests/hub/fake_hub.py did not start (python: " TETHER_PYTHON3 ")");
     auto j = tether::JsonMap::parse(line);
     hub_url_ = j.at("hub").get<std::string>();
     cdn_url_ = j.at("cdn").get<std::string>();
