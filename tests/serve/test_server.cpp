@@ -1,0 +1,367 @@
+// The HTTP server in-process with a fake engine: health state machine, auth, routing, request ids, the limits,
+// queue_full, inference_failed (and serving on), request_timeout, metrics, and stop() draining in-flight requests.
+#include <gtest/gtest.h>
+
+#include <atomic>
+#include <condition_variable>
+#include <future>
+#include <thread>
+
+#include "core/json_util.h"
+#include "http_test_client.h"
+#include "serve/base64.h"
+#include "serve/server.h"
+
+using namespace tether;
+using namespace tether::serve;
+using namespace tether::serve::testing;
+using namespace std::chrono_literals;
+
+namespace {
+
+// A model with one camera, state 2, action 2, chunk 3, whose actions are state + seed-derived values, so a reply
+// can be checked exactly. Knobs make it slow, failing, or blocked at load.
+struct FakeEngine {
+  std::atomic<int> delay_ms{0};
+  std::atomic<bool> fail{false};
+  std::atomic<int> calls{0};
+  std::mutex mu;
+  std::condition_variable cv;
+  bool release_load = true;
+
+  static float expected(float state0, uint64_t seed, int row, int col) {
+    return state0 + float(seed % 97) + float(row * 10 + col);
+  }
+
+  Engine make() {
+    {
+      std::unique_lock lock(mu);
+      cv.wait(lock, [&] { return release_load; });
+    }
+    Engine e;
+    e.spec.family = "fake";
+    e.spec.cameras = {"observation.images.front"};
+    e.spec.state_dim = 2;
+    e.spec.action_dim = 2;
+    e.spec.chunk_size = 3;
+    e.spec.image_height = e.spec.image_width = 4;
+    e.model_hash = "sha256:feed";
+    e.gemm = "none";
+    e.predict = [this](const std::vector<policy::Observation>& batch) {
+      ++calls;
+      if (delay_ms > 0) std::this_thread::sleep_for(std::chrono::milliseconds(delay_ms.load()));
+      if (fail) throw Error(ErrorCode::internal, "fake forward pass failed");
+      policy::Prediction p;
+      for (const auto& o : batch) {
+        policy::ActionChunk c;
+        c.chunk_size = 3;
+        c.action_dim = 2;
+        for (int r = 0; r < 3; ++r)
+          for (int k = 0; k < 2; ++k) c.actions.push_back(expected(o.state[0], o.seed, r, k));
+        p.items.push_back(std::move(c));
+      }
+      return p;
+    };
+    return e;
+  }
+};
+
+// A server on a free port, run on its own thread; stopped (and joined) at the end of the test.
+class TestServer {
+ public:
+  TestServer(FakeEngine& engine, ServerOptions options = {}) {
+    options.port = 0;
+    server_ = std::make_unique<Server>(options, [&engine] { return engine.make(); });
+    port_ = server_->start();
+    thread_ = std::thread([this] {
+      try {
+        server_->run(/*handle_signals=*/false);
+      } catch (...) {
+        error_ = std::current_exception();
+      }
+    });
+  }
+  ~TestServer() { stop(); }
+  void stop() {
+    if (thread_.joinable()) {
+      server_->stop();
+      thread_.join();
+    }
+  }
+  uint16_t port() const { return port_; }
+  Server& server() { return *server_; }
+  void wait_ready() {
+    for (int i = 0; i < 500 && server_->health() != HealthState::ready; ++i) std::this_thread::sleep_for(10ms);
+    ASSERT_EQ(server_->health(), HealthState::ready);
+  }
+
+ private:
+  std::unique_ptr<Server> server_;
+  std::thread thread_;
+  uint16_t port_ = 0;
+  std::exception_ptr error_;
+};
+
+std::string body(float state0, uint64_t seed) {
+  std::vector<uint8_t> px(4 * 4 * 3, 100);
+  const Json j = {{"instruction", "go"},
+                  {"state", {state0, 0}},
+                  {"image", {{"data", base64_encode(px.data(), px.size())}, {"shape", {4, 4, 3}}}},
+                  {"seed", seed}};
+  return j.dump();
+}
+
+std::string error_code(const HttpReply& r) { return Json::parse(r.body)["error"]["code"].get<std::string>(); }
+
+}  // namespace
+
+TEST(Server, HealthIsLoadingThenReady) {
+  FakeEngine engine;
+  engine.release_load = false;
+  TestServer srv(engine);
+  HttpReply h = http_get(srv.port(), "/health");
+  EXPECT_EQ(h.status, 503);
+  EXPECT_EQ(Json::parse(h.body)["state"], "loading");
+  EXPECT_EQ(Json::parse(h.body)["status"], "unavailable");
+  EXPECT_TRUE(Json::parse(h.body)["model_hash"].is_null());
+  EXPECT_EQ(http_get(srv.port(), "/ready").status, 503);
+  EXPECT_EQ(http_get(srv.port(), "/live").status, 200);
+  const HttpReply act = http_post(srv.port(), "/act", body(1, 1));
+  EXPECT_EQ(act.status, 503);
+  EXPECT_EQ(error_code(act), "not_ready");
+  EXPECT_EQ(act.headers.at("retry-after"), "1");
+  EXPECT_EQ(error_code(http_get(srv.port(), "/config")), "not_ready");
+  {
+    std::lock_guard lock(engine.mu);
+    engine.release_load = true;
+  }
+  engine.cv.notify_all();
+  srv.wait_ready();
+  EXPECT_EQ(engine.calls.load(), 1) << "exactly one warm-up inference";
+  h = http_get(srv.port(), "/health");
+  EXPECT_EQ(h.status, 200);
+  EXPECT_EQ(Json::parse(h.body), Json::parse(R"({"status": "ok", "state": "ready", "model_hash": "sha256:feed"})"));
+  EXPECT_EQ(Json::parse(http_get(srv.port(), "/ready").body), Json::parse(R"({"ready": true})"));
+}
+
+TEST(Server, ActReturnsTheChunkAndItsMetadata) {
+  FakeEngine engine;
+  TestServer srv(engine);
+  srv.wait_ready();
+  const HttpReply r = http_post(srv.port(), "/act", body(2.5f, 7), {{"X-Tether-Request-ID", "robot-1.step:3"}});
+  ASSERT_EQ(r.status, 200) << r.body;
+  const Json j = Json::parse(r.body);
+  ASSERT_EQ(j["actions"].size(), 3u);
+  for (int row = 0; row < 3; ++row)
+    for (int k = 0; k < 2; ++k) EXPECT_EQ(j["actions"][row][k].get<float>(), FakeEngine::expected(2.5f, 7, row, k));
+  EXPECT_EQ(j["num_actions"], 3);
+  EXPECT_EQ(j["action_dim"], 2);
+  EXPECT_EQ(j["request_id"], "robot-1.step:3");
+  EXPECT_EQ(r.headers.at("x-tether-request-id"), "robot-1.step:3");
+  EXPECT_EQ(j["model_hash"], "sha256:feed");
+  EXPECT_EQ(j["batch_size"], 1);
+  EXPECT_TRUE(j["episode_id"].is_null());
+  EXPECT_EQ(j["inference_mode"]["backend"], "cpu");
+  for (const char* stage : {"total", "queue", "preprocess", "vision", "prefix", "denoise", "postprocess"})
+    EXPECT_TRUE(j["latency_ms"].contains(stage)) << stage;
+}
+
+TEST(Server, DefaultSeedComesFromTheRequestId) {
+  FakeEngine engine;
+  TestServer srv(engine);
+  srv.wait_ready();
+  Json b = Json::parse(body(0, 0));
+  b.erase("seed");
+  const HttpReply r = http_post(srv.port(), "/act", b.dump(), {{"X-Request-ID", "abc"}});
+  ASSERT_EQ(r.status, 200) << r.body;
+  EXPECT_EQ(Json::parse(r.body)["actions"][0][0].get<float>(), FakeEngine::expected(0, seed_from_request_id("abc"), 0, 0));
+}
+
+TEST(Server, RequestIdsAreValidatedOrGenerated) {
+  FakeEngine engine;
+  TestServer srv(engine);
+  EXPECT_EQ(http_get(srv.port(), "/live", {{"X-Request-ID", "up-42"}}).headers.at("x-tether-request-id"), "up-42");
+  EXPECT_EQ(http_get(srv.port(), "/live", {{"X-Tether-Request-ID", "a"}, {"X-Request-ID", "b"}})
+                .headers.at("x-tether-request-id"),
+            "a");
+  for (const std::string& bad : {std::string("has space"), std::string(129, 'x'), std::string("semi;colon")}) {
+    const std::string id = http_get(srv.port(), "/live", {{"X-Tether-Request-ID", bad}}).headers.at("x-tether-request-id");
+    EXPECT_NE(id, bad);
+    EXPECT_TRUE(valid_request_id(id)) << id;
+  }
+  const std::string a = http_get(srv.port(), "/nope").headers.at("x-tether-request-id");
+  const std::string b = http_get(srv.port(), "/nope").headers.at("x-tether-request-id");
+  EXPECT_NE(a, b);
+}
+
+TEST(Server, AuthGuardsActAndConfigOnly) {
+  FakeEngine engine;
+  ServerOptions o;
+  o.api_key = "s3cret-key";
+  TestServer srv(engine, o);
+  srv.wait_ready();
+  for (const auto& headers : std::vector<std::vector<std::pair<std::string, std::string>>>{
+           {}, {{"Authorization", "Bearer wrong"}}, {{"X-Tether-Key", "s3cret-ke"}}, {{"Authorization", "s3cret-key"}}}) {
+    const HttpReply r = http_post(srv.port(), "/act", body(1, 1), headers);
+    EXPECT_EQ(r.status, 401);
+    EXPECT_EQ(error_code(r), "unauthorized");
+    EXPECT_EQ(http_get(srv.port(), "/config", headers).status, 401);
+  }
+  const int calls_before = engine.calls.load();
+  EXPECT_EQ(http_post(srv.port(), "/act", body(1, 1), {{"Authorization", "Bearer s3cret-key"}}).status, 200);
+  EXPECT_EQ(http_post(srv.port(), "/act", body(1, 1), {{"X-Tether-Key", "s3cret-key"}}).status, 200);
+  EXPECT_EQ(engine.calls.load(), calls_before + 2) << "unauthorized requests must run nothing";
+  EXPECT_EQ(http_get(srv.port(), "/config", {{"X-Tether-Key", "s3cret-key"}}).status, 200);
+  for (const char* path : {"/health", "/ready", "/live", "/metrics"}) EXPECT_EQ(http_get(srv.port(), path).status, 200) << path;
+}
+
+TEST(Server, KeysCompareExactly) {
+  EXPECT_TRUE(keys_equal("abc", "abc"));
+  EXPECT_FALSE(keys_equal("abd", "abc"));
+  EXPECT_FALSE(keys_equal("ab", "abc"));
+  EXPECT_FALSE(keys_equal("abcd", "abc"));
+  EXPECT_FALSE(keys_equal("", "abc"));
+  EXPECT_FALSE(keys_equal(std::string("abc\0", 4), "abc"));
+}
+
+TEST(Server, RoutingErrors) {
+  FakeEngine engine;
+  TestServer srv(engine);
+  srv.wait_ready();
+  HttpReply r = http_get(srv.port(), "/nope");
+  EXPECT_EQ(r.status, 404);
+  EXPECT_EQ(error_code(r), "not_found");
+  EXPECT_EQ(r.headers.at("content-type"), "application/json");
+  r = http_get(srv.port(), "/act");
+  EXPECT_EQ(r.status, 405);
+  EXPECT_EQ(error_code(r), "method_not_allowed");
+  EXPECT_EQ(http_post(srv.port(), "/health", "{}").status, 405);
+  r = http_post(srv.port(), "/act", "{not json");
+  EXPECT_EQ(r.status, 400);
+  EXPECT_EQ(error_code(r), "bad_json");
+}
+
+TEST(Server, BodyAndHeaderLimits) {
+  FakeEngine engine;
+  ServerOptions o;
+  o.max_body_bytes = 2048;
+  o.max_header_bytes = 1024;
+  TestServer srv(engine, o);
+  srv.wait_ready();
+  HttpReply r = http_post(srv.port(), "/act", std::string(4096, ' '));
+  EXPECT_EQ(r.status, 413);
+  EXPECT_EQ(error_code(r), "body_too_large");
+  r = http_get(srv.port(), "/health", {{"X-Padding", std::string(2000, 'a')}});
+  EXPECT_EQ(r.status, 431);
+  EXPECT_EQ(error_code(r), "header_too_large");
+  EXPECT_EQ(http_get(srv.port(), "/health", {{"X-Padding", std::string(500, 'a')}}).status, 200);
+}
+
+TEST(Server, FullQueueAnswers503WithRetryAfter) {
+  FakeEngine engine;
+  ServerOptions o;
+  o.batch = {.max_batch = 1, .batch_timeout_ms = 0, .max_queue = 1};
+  TestServer srv(engine, o);
+  srv.wait_ready();
+  engine.delay_ms = 300;
+  std::vector<std::future<HttpReply>> replies;
+  for (int i = 0; i < 6; ++i) {
+    replies.push_back(std::async(std::launch::async, [&, i] { return http_post(srv.port(), "/act", body(float(i), i)); }));
+    std::this_thread::sleep_for(20ms);
+  }
+  int ok = 0, full = 0;
+  for (auto& f : replies) {
+    const HttpReply r = f.get();
+    if (r.status == 200) {
+      ++ok;
+    } else {
+      EXPECT_EQ(r.status, 503);
+      EXPECT_EQ(error_code(r), "queue_full");
+      EXPECT_EQ(r.headers.at("retry-after"), "1");
+      ++full;
+    }
+  }
+  EXPECT_GE(ok, 2);  // one running, one queued
+  EXPECT_GE(full, 1);
+}
+
+TEST(Server, InferenceFailureIs500AndTheServerKeepsServing) {
+  FakeEngine engine;
+  TestServer srv(engine);
+  srv.wait_ready();
+  engine.fail = true;
+  HttpReply r = http_post(srv.port(), "/act", body(1, 1));
+  EXPECT_EQ(r.status, 500);
+  EXPECT_EQ(error_code(r), "inference_failed");
+  EXPECT_NE(Json::parse(r.body)["error"]["message"].get<std::string>().find("fake forward pass failed"), std::string::npos);
+  EXPECT_EQ(http_get(srv.port(), "/health").status, 200) << "one failed batch is not a sick server";
+  for (int i = 0; i < 3; ++i) http_post(srv.port(), "/act", body(1, 1));
+  r = http_get(srv.port(), "/health");
+  EXPECT_EQ(r.status, 503);
+  EXPECT_EQ(Json::parse(r.body)["state"], "degraded");
+  engine.fail = false;
+  EXPECT_EQ(http_post(srv.port(), "/act", body(1, 1)).status, 200) << "a degraded server still tries";
+  EXPECT_EQ(http_get(srv.port(), "/health").status, 200);
+}
+
+TEST(Server, QueuedPastTheRequestTimeoutIs408) {
+  FakeEngine engine;
+  ServerOptions o;
+  o.batch = {.max_batch = 1, .batch_timeout_ms = 0, .max_queue = 8};
+  o.request_timeout_ms = 100;
+  TestServer srv(engine, o);
+  srv.wait_ready();
+  engine.delay_ms = 300;
+  auto slow = std::async(std::launch::async, [&] { return http_post(srv.port(), "/act", body(0, 0)); });
+  std::this_thread::sleep_for(50ms);
+  const HttpReply late = http_post(srv.port(), "/act", body(1, 1));
+  EXPECT_EQ(late.status, 408);
+  EXPECT_EQ(error_code(late), "request_timeout");
+  EXPECT_EQ(slow.get().status, 200);
+}
+
+TEST(Server, MetricsCountRequestsAndStages) {
+  FakeEngine engine;
+  TestServer srv(engine);
+  srv.wait_ready();
+  http_post(srv.port(), "/act", body(1, 1));
+  http_post(srv.port(), "/act", "[]");
+  http_get(srv.port(), "/nope");
+  const HttpReply m = http_get(srv.port(), "/metrics");
+  ASSERT_EQ(m.status, 200);
+  EXPECT_EQ(m.headers.at("content-type").rfind("text/plain; version=0.0.4", 0), 0u);
+  for (const char* line : {"tether_requests_total{endpoint=\"/act\",status=\"200\"} 1",
+                           "tether_requests_total{endpoint=\"/act\",status=\"400\"} 1",
+                           "tether_requests_total{endpoint=\"other\",status=\"404\"} 1",
+                           "tether_request_duration_seconds_count{stage=\"denoise\"} 1",
+                           "tether_batch_size_count 1",  // the warm-up is not a served request
+                           "tether_model_ready 1", "tether_queue_depth 0", "tether_build_info{version="})
+    EXPECT_NE(m.body.find(line), std::string::npos) << line << "\n" << m.body;
+}
+
+TEST(Server, StopFinishesInFlightRequests) {
+  FakeEngine engine;
+  TestServer srv(engine);
+  srv.wait_ready();
+  engine.delay_ms = 300;
+  auto in_flight = std::async(std::launch::async, [&] { return http_post(srv.port(), "/act", body(3, 3)); });
+  std::this_thread::sleep_for(100ms);
+  srv.stop();  // returns once the server has drained
+  const HttpReply r = in_flight.get();
+  EXPECT_EQ(r.status, 200);
+  EXPECT_EQ(r.headers.at("connection"), "close");
+  EXPECT_THROW(http_get(srv.port(), "/live"), std::exception) << "still accepting after stop";
+}
+
+TEST(Server, LoadFailureIsRethrownFromRun) {
+  ServerOptions o;
+  o.port = 0;
+  Server server(o, []() -> Engine { throw Error(ErrorCode::not_found, "no such checkpoint"); });
+  server.start();
+  try {
+    server.run(false);
+    FAIL() << "run() returned normally";
+  } catch (const Error& e) {
+    EXPECT_NE(std::string(e.what()).find("no such checkpoint"), std::string::npos);
+  }
+}
