@@ -8,6 +8,7 @@
 
 #include <cmath>
 #include <cstdio>
+#include <filesystem>
 #include <fstream>
 #include <regex>
 #include <thread>
@@ -29,11 +30,18 @@ const std::string kImage = std::string(TETHER_SOURCE_DIR) + "/models/demo/sample
 // A `tether serve` child whose stdout is read for the listening line. SIGKILLed if a test leaves it running.
 class ServeProcess {
  public:
-  explicit ServeProcess(std::vector<std::string> extra) {
+  // `verb_args`: what follows the binary, e.g. {"serve", DIR, "--port", "0"}.
+  explicit ServeProcess(std::vector<std::string> verb_args, const std::vector<std::string>& env_overrides = {}) {
     int out[2];
     if (pipe(out) != 0) throw std::runtime_error("pipe failed");
-    std::vector<std::string> args = {TETHER_BINARY, "serve", kDemo, "--port", "0"};
-    args.insert(args.end(), extra.begin(), extra.end());
+    std::vector<std::string> args = {TETHER_BINARY};
+    args.insert(args.end(), verb_args.begin(), verb_args.end());
+    std::vector<std::string> env_strings;
+    for (char** e = environ; *e; ++e) env_strings.emplace_back(*e);
+    env_strings.insert(env_strings.end(), env_overrides.begin(), env_overrides.end());
+    std::vector<char*> envp;
+    for (auto& e : env_strings) envp.push_back(e.data());
+    envp.push_back(nullptr);
     std::vector<char*> argv;
     for (auto& a : args) argv.push_back(a.data());
     argv.push_back(nullptr);
@@ -41,7 +49,7 @@ class ServeProcess {
     posix_spawn_file_actions_init(&fa);
     posix_spawn_file_actions_adddup2(&fa, out[1], STDOUT_FILENO);
     posix_spawn_file_actions_addclose(&fa, out[0]);
-    if (posix_spawn(&pid_, argv[0], &fa, nullptr, argv.data(), environ) != 0) throw std::runtime_error("spawn failed");
+    if (posix_spawn(&pid_, argv[0], &fa, nullptr, argv.data(), envp.data()) != 0) throw std::runtime_error("spawn failed");
     posix_spawn_file_actions_destroy(&fa);
     close(out[1]);
     out_ = fdopen(out[0], "r");
@@ -109,7 +117,7 @@ std::vector<float> flat_actions(const Json& reply) {
 }  // namespace
 
 TEST(ServeProcess, ServesTheDemoCheckpointAndBatchesWithoutChangingResults) {
-  ServeProcess server({"--max-batch", "4", "--batch-timeout-ms", "300"});
+  ServeProcess server({"serve", kDemo, "--port", "0", "--max-batch", "4", "--batch-timeout-ms", "300"});
   const uint16_t port = server.port();
   wait_ready(port);
 
@@ -151,5 +159,100 @@ TEST(ServeProcess, ServesTheDemoCheckpointAndBatchesWithoutChangingResults) {
   // Different seeds really do give different chunks (the comparison above is not vacuous).
   EXPECT_NE(flat_actions(Json::parse(batched[0].body)), flat_actions(Json::parse(batched[1].body)));
 
+  EXPECT_EQ(server.terminate(), 0);
+}
+
+namespace {
+
+struct CliRun {
+  int code = -1;
+  std::string out;  // stdout and stderr together
+};
+
+CliRun run_tether(const std::string& args) {
+  CliRun r;
+  FILE* pipe = popen((std::string(TETHER_BINARY) + " " + args + " 2>&1").c_str(), "r");
+  char buf[4096];
+  std::size_t n;
+  while ((n = fread(buf, 1, sizeof buf, pipe)) > 0) r.out.append(buf, n);
+  const int status = pclose(pipe);
+  r.code = WIFEXITED(status) ? WEXITSTATUS(status) : -1;
+  return r;
+}
+
+std::filesystem::path temp_dir(const std::string& name) {
+  const auto dir = std::filesystem::temp_directory_path() / ("tether_go_" + std::to_string(::getpid())) / name;
+  std::filesystem::remove_all(dir);
+  std::filesystem::create_directories(dir);
+  return dir;
+}
+
+}  // namespace
+
+TEST(GoCli, ListsTheRegistry) {
+  const CliRun r = run_tether("go --list");
+  ASSERT_EQ(r.code, 0) << r.out;
+  for (const char* id : {"smolvla-demo", "smolvla-base", "pi0-base", "pi05-base", "gr00t-n1.6"})
+    EXPECT_NE(r.out.find(id), std::string::npos) << id << "\n" << r.out;
+  EXPECT_NE(r.out.find("lerobot/smolvla_base"), std::string::npos);
+  EXPECT_NE(r.out.find("nvidia/GR00T-N1.6-3B"), std::string::npos);
+}
+
+TEST(GoCli, UnknownIdAndUnsupportedFamilyExit2) {
+  CliRun r = run_tether("go --model no-such-model");
+  EXPECT_EQ(r.code, 2) << r.out;
+  EXPECT_NE(r.out.find("smolvla-demo"), std::string::npos) << "should list the known ids: " << r.out;
+  for (const char* id : {"pi0-base", "pi05-base", "gr00t-n1.6"}) {
+    r = run_tether(std::string("go --model ") + id);
+    EXPECT_EQ(r.code, 2) << r.out;
+    EXPECT_NE(r.out.find("not supported"), std::string::npos) << r.out;
+  }
+  EXPECT_EQ(run_tether("go").code, 2);
+}
+
+TEST(GoCli, MissingDownloadSaysHowToGetIt) {
+  const auto cache = temp_dir("empty_cache");
+  const std::string env = "HF_HUB_CACHE=" + cache.string() + " ";
+  const CliRun m = [&] {
+    CliRun out;
+    FILE* pipe = popen((env + TETHER_BINARY + " go --model smolvla-base --port 0 2>&1").c_str(), "r");
+    char buf[4096];
+    std::size_t n;
+    while ((n = fread(buf, 1, sizeof buf, pipe)) > 0) out.out.append(buf, n);
+    const int status = pclose(pipe);
+    out.code = WIFEXITED(status) ? WEXITSTATUS(status) : -1;
+    return out;
+  }();
+  EXPECT_EQ(m.code, 2) << m.out;
+  EXPECT_NE(m.out.find("lerobot/smolvla_base"), std::string::npos) << m.out;
+  EXPECT_NE(m.out.find("download"), std::string::npos) << m.out;
+  EXPECT_EQ(m.out.find("listening"), std::string::npos) << m.out;
+}
+
+TEST(GoCli, ServesTheBundledDemo) {
+  ServeProcess server({"go", "--model", "smolvla-demo", "--port", "0"});
+  wait_ready(server.port());
+  const HttpReply r = http_post(server.port(), "/act", act_body(5));
+  ASSERT_EQ(r.status, 200) << r.body;
+  EXPECT_EQ(Json::parse(r.body)["actions"].size(), 50u);
+  EXPECT_EQ(server.terminate(), 0);
+}
+
+TEST(GoCli, FindsACheckpointInTheHuggingFaceCache) {
+  // The hub cache layout: models--org--name/refs/main names the snapshot directory holding the files.
+  const auto cache = temp_dir("hf_home") / "hub";
+  const auto repo = cache / "models--lerobot--smolvla_base";
+  std::filesystem::create_directories(repo / "refs");
+  std::ofstream(repo / "refs" / "main") << "0123abcd\n";
+  std::filesystem::create_directories(repo / "snapshots");
+  std::filesystem::create_directory_symlink(kDemo, repo / "snapshots" / "0123abcd");
+  // A registry given by TETHER_REGISTRY, and HF_HOME (not HF_HUB_CACHE) locating the cache.
+  const auto reg = temp_dir("registry") / "registry.json";
+  std::ofstream(reg) << R"({"models": {"base": {"family": "smolvla", "hf_repo": "lerobot/smolvla_base", "supported": true}}})";
+  ServeProcess server({"go", "--model", "base", "--port", "0"},
+                      {"TETHER_REGISTRY=" + reg.string(), "HF_HOME=" + cache.parent_path().string(), "HF_HUB_CACHE="});
+  wait_ready(server.port());
+  const Json health = Json::parse(http_get(server.port(), "/health").body);
+  EXPECT_EQ(health["state"], "ready");
   EXPECT_EQ(server.terminate(), 0);
 }
