@@ -457,3 +457,12 @@ def test_url_forms(fake):
     assert [r.path for r in fake.requests] == ["/health", "/prefix/health"]
     with pytest.raises(ValueError, match="scheme"):
         TetherClient("ftp://host")
+
+
+def test_non_object_json_answer_is_reported(fake):
+    fake.script = [Reply(200, [1, 2]), Reply(200, "<html>proxy page</html>")]
+    with fast_client(fake.url) as client:
+        for _ in range(2):
+            with pytest.raises(TetherError) as info:
+                client.health()
+            assert info.value.code == "bad_response" and info.value.status == 200

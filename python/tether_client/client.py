@@ -323,16 +323,19 @@ class TetherClient:
         raise ServerError(message, **kwargs)
 
     @staticmethod
-    def _json_body(response: _Response) -> Any:
+    def _json_body(response: _Response) -> Dict[str, Any]:
         try:
-            return response.json()
+            decoded = response.json()
         except (ValueError, UnicodeDecodeError) as e:
+            decoded = e
+        if not isinstance(decoded, dict):
             raise TetherError(
-                f"response is not JSON: {response.body[:200]!r}",
+                f"response is not a JSON object: {response.body[:200]!r}",
                 status=response.status,
                 code="bad_response",
                 request_id=response.header(REQUEST_ID_HEADER),
-            ) from e
+            )
+        return decoded
 
     # -- endpoints --------------------------------------------------------------------------------------------
 
