@@ -283,6 +283,18 @@ def test_large_raw_frame_under_the_default_limit(server):
     assert result.actions.shape == (50, 6)
 
 
+def test_body_over_the_default_limit_is_answered_413(server):
+    # 24 MiB of base64 against the default 16 MiB: the server answers early; the client still reads that answer.
+    frame = np.zeros((2048, 4096, 3), dtype=np.uint8)
+    with TetherClient(server.url, api_key="", timeout=60) as client:
+        with pytest.raises(InvalidRequestError) as info:
+            client.act(frame, state=STATE, instruction=INSTRUCTION, request_id="big-1")
+        assert (info.value.status, info.value.code) == (413, "body_too_large")
+        assert client.act(tiny_frame(), state=STATE, instruction=INSTRUCTION).actions.shape == (50, 6)
+    # The headers were read whole, so the 413 carries the client's request id like every other answer.
+    assert info.value.request_id == "big-1", f"413 answered with request id {info.value.request_id!r}"
+
+
 # -- other endpoints ------------------------------------------------------------------------------------------
 
 
