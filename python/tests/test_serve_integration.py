@@ -877,3 +877,68 @@ def test_read_timeout_and_idle_keep_alive():
         assert request(proc.port, "GET", "/health")[0] == 200
     finally:
         assert proc.stop() == 0, proc.stderr_tail()
+
+
+# -- batching and HTTP framing --------------------------------------------------------------------------------
+
+
+def test_batched_requests_match_their_solo_answers():
+    # A long batch window so concurrent requests share forward passes; each keeps its own seed's answer.
+    proc = ServeProcess(["--batch-timeout-ms", "200", "--max-batch", "8"])
+    try:
+        seeds = list(range(20, 28))
+        solo = {s: check_actions(ok_json(post_act(proc, act_body(seed=s)))) for s in seeds}
+        barrier = threading.Barrier(len(seeds))
+
+        def one(seed: int) -> Dict[str, Any]:
+            barrier.wait(timeout=30)
+            return ok_json(post_act(proc, act_body(seed=seed)))
+
+        with concurrent.futures.ThreadPoolExecutor(len(seeds)) as pool:
+            answers = dict(zip(seeds, pool.map(one, seeds, timeout=120)))
+        for s in seeds:
+            np.testing.assert_array_equal(check_actions(answers[s]), solo[s], err_msg=f"seed {s}")
+        assert max(a["batch_size"] for a in answers.values()) > 1, [a["batch_size"] for a in answers.values()]
+    finally:
+        assert proc.stop() == 0, proc.stderr_tail()
+
+
+def test_pipelined_and_chunked_requests(server):
+    body = act_body(seed=4)
+    one = b"POST /act HTTP/1.1\r\nHost: x\r\nContent-Type: application/json\r\nContent-Length: %d\r\n" % len(body)
+    with socket.create_connection(("127.0.0.1", server.port), timeout=30) as s:
+        # Two requests written back to back on one connection are answered in order.
+        s.sendall(one + b"X-Tether-Request-ID: pipe-1\r\n\r\n" + body + one + b"X-Tether-Request-ID: pipe-2\r\n\r\n" + body)
+        data = b""
+        answers = []
+        while len(answers) < 2:
+            chunk = s.recv(65536)
+            assert chunk, f"connection closed after {len(answers)} answers"
+            data += chunk
+            while _complete(data):
+                head, _, rest = data.partition(b"\r\n\r\n")
+                length = int(re.search(rb"(?im)^content-length:\s*(\d+)", head).group(1))
+                answers.append(parse_raw_response(head + b"\r\n\r\n" + rest[:length]))
+                data = rest[length:]
+        assert [a[1]["x-tether-request-id"] for a in answers] == ["pipe-1", "pipe-2"]
+        assert [a[0] for a in answers] == [200, 200]
+        np.testing.assert_array_equal(check_actions(json.loads(answers[0][2])), check_actions(json.loads(answers[1][2])))
+    # A chunked body under the limit is read whole.
+    chunked = (
+        b"POST /act HTTP/1.1\r\nHost: x\r\nContent-Type: application/json\r\nTransfer-Encoding: chunked\r\n\r\n"
+        + b"".join(b"%x\r\n%s\r\n" % (len(p), p) for p in [body[i : i + 4096] for i in range(0, len(body), 4096)])
+        + b"0\r\n\r\n"
+    )
+    status, _, raw = parse_raw_response(raw_exchange(server.port, chunked))
+    assert status == 200, raw[:300]
+    check_actions(json.loads(raw))
+    # "Connection: close" is honoured.
+    with socket.create_connection(("127.0.0.1", server.port), timeout=30) as s:
+        s.sendall(b"GET /live HTTP/1.1\r\nHost: x\r\nConnection: close\r\n\r\n")
+        data = b""
+        while True:
+            chunk = s.recv(65536)
+            if not chunk:
+                break
+            data += chunk
+    assert parse_raw_response(data)[0] == 200
