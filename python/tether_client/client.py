@@ -240,8 +240,9 @@ class TetherClient:
                     ) from e
                 except (http.client.RemoteDisconnected, ConnectionResetError, BrokenPipeError) as e:
                     self._drop_connection()
-                    # An idle keep-alive connection the server closed: the request never reached it, so it is
-                    # sent again once on a fresh connection.
+                    # Almost always an idle keep-alive connection the server had closed. Every endpoint is free of
+                    # side effects (an /act sent twice only costs one more inference), so one resend on a fresh
+                    # connection is safe.
                     if reused and attempt == 0:
                         continue
                     raise TetherConnectionError(
