@@ -44,17 +44,37 @@ std::vector<std::string> split(const std::string& s) {
   return out;
 }
 
-void run_client(const Options& o, const std::string& image_b64, int client, ClientStats& stats) {
+// The model's camera keys from GET /config, so the same image can be sent to every camera.
+std::vector<std::string> fetch_cameras(const Options& o) {
+  net::io_context ioc;
+  beast::tcp_stream stream(ioc);
+  stream.connect(net::ip::tcp::endpoint(net::ip::make_address("127.0.0.1"), o.port));
+  http::request<http::empty_body> req{http::verb::get, "/config", 11};
+  req.set(http::field::host, "127.0.0.1");
+  if (!o.key.empty()) req.set(http::field::authorization, "Bearer " + o.key);
+  http::write(stream, req);
+  beast::flat_buffer buffer;
+  http::response<http::string_body> res;
+  http::read(stream, buffer, res);
+  if (res.result_int() != 200) throw std::runtime_error("GET /config: " + res.body());
+  return Json::parse(res.body())["cameras"].get<std::vector<std::string>>();
+}
+
+void run_client(const Options& o, const std::string& image_b64, const std::vector<std::string>& cameras, int client,
+                ClientStats& stats) {
   net::io_context ioc;
   beast::tcp_stream stream(ioc);
   stream.connect(net::ip::tcp::endpoint(net::ip::make_address("127.0.0.1"), o.port));
   Json state = Json::array();
   for (const auto& v : split(o.state)) state.push_back(std::stod(v));
+  Json images = Json::object();
+  for (const auto& c : cameras)
+    if (c.find("empty_camera_") == std::string::npos) images[c] = image_b64;
   beast::flat_buffer buffer;
   for (int i = 0; i < o.requests; ++i) {
     const Json body = {{"instruction", o.instruction},
                        {"state", state},
-                       {"images", {{"front", image_b64}}},
+                       {"images", images},
                        {"seed", uint64_t(client) * 100000 + uint64_t(i)}};
     http::request<http::string_body> req{http::verb::post, "/act", 11};
     req.set(http::field::host, "127.0.0.1");
@@ -115,13 +135,15 @@ int main(int argc, char** argv) {
   }
   const std::string image_b64 = tether::serve::base64_encode(reinterpret_cast<const uint8_t*>(bytes.data()), bytes.size());
 
+  const std::vector<std::string> cameras = fetch_cameras(o);
   std::printf("| clients | requests | throughput (req/s) | p50 (ms) | p95 (ms) | p99 (ms) | mean batch | errors |\n");
   std::printf("|---:|---:|---:|---:|---:|---:|---:|---:|\n");
+  std::fflush(stdout);
   for (int n : o.clients) {
     std::vector<ClientStats> stats(static_cast<std::size_t>(n));
     std::vector<std::thread> threads;
     const auto t0 = Clock::now();
-    for (int c = 0; c < n; ++c) threads.emplace_back([&, c] { run_client(o, image_b64, c, stats[std::size_t(c)]); });
+    for (int c = 0; c < n; ++c) threads.emplace_back([&, c] { run_client(o, image_b64, cameras, c, stats[std::size_t(c)]); });
     for (auto& t : threads) t.join();
     const double secs = std::chrono::duration<double>(Clock::now() - t0).count();
     std::vector<double> all;

@@ -2,6 +2,7 @@
 #include "serve/metrics.h"
 
 #include <algorithm>
+#include <cmath>
 #include <cstdio>
 #include <cstdlib>
 
@@ -15,6 +16,7 @@ const std::vector<double> kBatchBounds = {1, 2, 4, 8, 16, 32, 64};
 
 // Shortest text that reads back to the same double; Prometheus accepts any Go ParseFloat syntax.
 std::string num(double v) {
+  if (v == double(int64_t(v)) && std::abs(v) < 1e15) return std::to_string(int64_t(v));  // counts stay integers
   char buf[32];
   std::snprintf(buf, sizeof buf, "%.17g", v);
   for (int precision = 1; precision < 17; ++precision) {
