@@ -170,8 +170,11 @@ struct Server::Impl {
 
   HealthState health() const {
     const HealthState s = state.load(std::memory_order_acquire);
-    if (s == HealthState::ready && batcher && batcher->consecutive_failures() >= kDegradedAfterFailures)
-      return HealthState::degraded;
+    if (s != HealthState::ready && s != HealthState::degraded) return s;
+    const int failures = batcher->consecutive_failures();
+    if (failures >= kDegradedAfterFailures) return HealthState::degraded;
+    // A failed warm-up is forgiven by the first forward pass that succeeds after it.
+    if (s == HealthState::degraded && failures == 0 && batcher->batches_run() > 1) return HealthState::ready;
     return s;
   }
   // Engine and batcher exist (and are safe to read) once loading has finished successfully.

@@ -304,6 +304,23 @@ TEST(Server, InferenceFailureIs500AndTheServerKeepsServing) {
   EXPECT_EQ(http_get(srv.port(), "/health").status, 200);
 }
 
+TEST(Server, FailedWarmUpIsDegradedUntilAForwardPassSucceeds) {
+  FakeEngine engine;
+  engine.fail = true;
+  TestServer srv(engine);
+  for (int i = 0; i < 500 && srv.server().health() != HealthState::degraded; ++i) std::this_thread::sleep_for(10ms);
+  HttpReply h = http_get(srv.port(), "/health");
+  EXPECT_EQ(h.status, 503);
+  EXPECT_EQ(Json::parse(h.body)["state"], "degraded");
+  EXPECT_EQ(Json::parse(h.body)["model_hash"], "sha256:feed");
+  EXPECT_EQ(http_get(srv.port(), "/ready").status, 503);
+  engine.fail = false;
+  EXPECT_EQ(http_post(srv.port(), "/act", body(1, 1)).status, 200) << "a degraded server still serves /act";
+  h = http_get(srv.port(), "/health");
+  EXPECT_EQ(h.status, 200);
+  EXPECT_EQ(Json::parse(h.body)["state"], "ready");
+}
+
 TEST(Server, QueuedPastTheRequestTimeoutIs408) {
   FakeEngine engine;
   ServerOptions o;
