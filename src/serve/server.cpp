@@ -493,15 +493,27 @@ struct Server::Impl {
     stream.socket().close(ec);
   }
 
+  // Requests already answer every failure; this catch-all keeps a bug in the connection code from ending the process.
+  net::awaitable<void> guarded_session(tcp::socket socket) {
+    try {
+      co_await session(std::move(socket));
+    } catch (const std::exception& e) {
+      std::fprintf(stderr, "tether serve: connection dropped: %s\n", e.what());
+    }
+  }
+
   net::awaitable<void> accept_loop() {
     for (;;) {
       beast::error_code ec;
       tcp::socket socket = co_await acceptor.async_accept(ioc, net::redirect_error(net::use_awaitable, ec));
       if (ec) {
         if (!acceptor.is_open()) co_return;
-        continue;  // e.g. too many open files: keep serving the connections we have
+        // E.g. out of file descriptors: keep serving the connections we have and retry shortly, without spinning.
+        net::steady_timer pause(accept_strand, std::chrono::milliseconds(50));
+        co_await pause.async_wait(net::redirect_error(net::use_awaitable, ec));
+        continue;
       }
-      net::co_spawn(ioc, session(std::move(socket)), net::detached);
+      net::co_spawn(ioc, guarded_session(std::move(socket)), net::detached);
     }
   }
 
@@ -514,7 +526,7 @@ struct Server::Impl {
       for (int i = 0; i < 4096 && !ec; ++i) {
         tcp::socket socket(ioc);
         acceptor.accept(socket, ec);
-        if (!ec) net::co_spawn(ioc, session(std::move(socket)), net::detached);
+        if (!ec) net::co_spawn(ioc, guarded_session(std::move(socket)), net::detached);
       }
       ec.clear();
     }
