@@ -3,6 +3,7 @@
 #include <cctype>
 #include <cstdio>
 #include <cstdlib>
+#include <filesystem>
 #include <fstream>
 #include <iostream>
 
@@ -58,6 +59,9 @@ void add_serve_flags(CLI::App* sub, ServeFlags& f) {
 }
 
 int run_server(const std::string& checkpoint_dir, const ServeFlags& flags) {
+  // A missing directory is a usage error worth reporting before the socket is bound, not after.
+  if (!std::filesystem::is_directory(checkpoint_dir))
+    throw Error(ErrorCode::not_found, checkpoint_dir + ": not a checkpoint directory");
   serve::ServerOptions options = flags.options;
   options.api_key = read_api_key(flags);
   serve::Server server(options, [checkpoint_dir] { return serve::load_policy_engine(checkpoint_dir); });

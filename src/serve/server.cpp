@@ -567,8 +567,14 @@ Server::~Server() {
 uint16_t Server::start() {
   auto& m = *impl_;
   beast::error_code ec;
-  const auto address = net::ip::make_address(m.opts.host, ec);
-  if (ec) throw Error(ErrorCode::invalid_argument, "--host '" + m.opts.host + "' is not an IP address");
+  auto address = net::ip::make_address(m.opts.host, ec);
+  if (ec) {  // a name such as "localhost": its first address
+    tcp::resolver resolver(m.ioc);
+    const auto results = resolver.resolve(m.opts.host, "", ec);
+    if (ec || results.empty())
+      throw Error(ErrorCode::invalid_argument, "--host '" + m.opts.host + "' is neither an IP address nor a known name");
+    address = results.begin()->endpoint().address();
+  }
   const tcp::endpoint endpoint(address, m.opts.port);
   m.acceptor.open(endpoint.protocol(), ec);
   if (!ec) m.acceptor.set_option(net::socket_base::reuse_address(true), ec);
