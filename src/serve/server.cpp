@@ -458,7 +458,10 @@ struct Server::Impl {
         co_await http::async_read(stream, buffer, parser, net::redirect_error(net::use_awaitable, ec));
       if (ec) {
         // Beast reports an over-long header as header_limit: answered 431, as the contract documents.
-        Request partial = parser.is_header_done() ? parser.get() : Request{};
+        // The fields read so far are in the message even when the error came before the header "completed"
+        // (Beast checks Content-Length against the body limit while finishing the header), so the client's
+        // request id still applies.
+        Request partial = parser.get();
         if (partial.version() == 0) partial.version(11);
         const std::string rid = request_id_of(partial);
         if (ec == http::error::body_limit) {

@@ -248,9 +248,10 @@ TEST(Server, BodyAndHeaderLimits) {
   o.max_header_bytes = 1024;
   TestServer srv(engine, o);
   srv.wait_ready();
-  HttpReply r = http_post(srv.port(), "/act", std::string(4096, ' '));
+  HttpReply r = http_post(srv.port(), "/act", std::string(4096, ' '), {{"X-Tether-Request-ID", "big-1"}});
   EXPECT_EQ(r.status, 413);
   EXPECT_EQ(error_code(r), "body_too_large");
+  EXPECT_EQ(r.headers.at("x-tether-request-id"), "big-1");
   r = http_get(srv.port(), "/health", {{"X-Padding", std::string(2000, 'a')}});
   EXPECT_EQ(r.status, 431);
   EXPECT_EQ(error_code(r), "header_too_large");
