@@ -133,27 +133,30 @@ void Batcher::run_batch(std::vector<Pending>& pending) {
   for (auto& p : live) observations.push_back(std::move(p.obs));
 
   policy::Prediction prediction;
-  std::exception_ptr failure;
+  bool failed = false;
+  std::string failure;
   try {
     prediction = predict_(observations);
     if (prediction.items.size() != live.size())
       throw Error(ErrorCode::internal, "the policy returned " + std::to_string(prediction.items.size()) +
                                            " results for a batch of " + std::to_string(live.size()));
   } catch (const std::exception& e) {
-    failure = std::make_exception_ptr(
-        BatchError(BatchError::Kind::inference_failed, std::string("inference failed: ") + e.what()));
+    failed = true;
+    failure = std::string("inference failed: ") + e.what();
   } catch (...) {
-    failure = std::make_exception_ptr(BatchError(BatchError::Kind::inference_failed, "inference failed"));
+    failed = true;
+    failure = "inference failed";
   }
   {
     std::lock_guard lock(mu_);
     ++batches_;
     items_ += live.size();
-    consecutive_failures_ = failure ? consecutive_failures_ + 1 : 0;
+    consecutive_failures_ = failed ? consecutive_failures_ + 1 : 0;
   }
   for (std::size_t i = 0; i < live.size(); ++i) {
-    if (failure) {
-      complete(live[i].done, failure, {});
+    if (failed) {
+      // One exception object per request: each is rethrown and destroyed on its own caller's thread.
+      complete(live[i].done, std::make_exception_ptr(BatchError(BatchError::Kind::inference_failed, failure)), {});
       continue;
     }
     BatchResult r;

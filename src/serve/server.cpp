@@ -118,10 +118,18 @@ auto async_predict(runtime::Batcher& batcher, policy::Observation obs, Clock::ti
         auto h = std::make_shared<decltype(handler)>(std::move(handler));
         try {
           batcher.submit(std::move(o), deadline, [h, ex](std::exception_ptr e, runtime::BatchResult r) {
-            net::post(ex, [h, e, r = std::move(r)]() mutable { (*h)(e, std::move(r)); });
+            // The handler is moved out and run on the coroutine's executor, so the worker's copy of `h` (released
+            // whenever the worker gets to it) owns nothing of the coroutine.
+            net::post(ex, [h, e = std::move(e), r = std::move(r)]() mutable {
+              auto handler = std::move(*h);
+              handler(std::move(e), std::move(r));
+            });
           });
         } catch (...) {
-          net::post(ex, [h, e = std::current_exception()]() mutable { (*h)(e, runtime::BatchResult{}); });
+          net::post(ex, [h, e = std::current_exception()]() mutable {
+            auto handler = std::move(*h);
+            handler(std::move(e), runtime::BatchResult{});
+          });
         }
       },
       token, std::move(obs));
