@@ -1,5 +1,10 @@
 // The HTTP/1.1 action server: binds first, loads and warms the model in the background (health says so), then
 // answers /act through the batching scheduler. Limits, auth, request ids, metrics, graceful shutdown.
+// Error codes beyond the /act body's (see act_request.h): 401 unauthorized, 404 not_found, 405 method_not_allowed,
+// 408 request_timeout, 413 body_too_large, 431 header_too_large (Beast reports header_limit; answered 431, never
+// 400), 400 bad_request (malformed HTTP), 500 inference_failed, 500 internal_error (a bug caught per request),
+// 503 queue_full / not_ready (both with Retry-After: 1). A read that times out closes the connection unanswered:
+// the socket is already shut by then.
 #pragma once
 
 #include <atomic>
