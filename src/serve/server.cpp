@@ -516,7 +516,9 @@ struct Server::Impl {
   net::awaitable<void> accept_loop() {
     for (;;) {
       beast::error_code ec;
-      tcp::socket socket = co_await acceptor.async_accept(ioc, net::redirect_error(net::use_awaitable, ec));
+      // Each connection gets its own strand: the stream's timeout timer and its I/O completions never run at once
+      // on two I/O threads (beast::tcp_stream is not thread-safe).
+      tcp::socket socket = co_await acceptor.async_accept(net::make_strand(ioc), net::redirect_error(net::use_awaitable, ec));
       if (ec) {
         if (!acceptor.is_open()) co_return;
         // E.g. out of file descriptors: keep serving the connections we have and retry shortly, without spinning.
@@ -524,7 +526,8 @@ struct Server::Impl {
         co_await pause.async_wait(net::redirect_error(net::use_awaitable, ec));
         continue;
       }
-      net::co_spawn(ioc, guarded_session(std::move(socket)), net::detached);
+      auto executor = socket.get_executor();
+      net::co_spawn(executor, guarded_session(std::move(socket)), net::detached);
     }
   }
 
@@ -535,9 +538,12 @@ struct Server::Impl {
     if (acceptor.is_open()) {
       acceptor.non_blocking(true, ec);
       for (int i = 0; i < 4096 && !ec; ++i) {
-        tcp::socket socket(ioc);
+        tcp::socket socket(net::make_strand(ioc));
         acceptor.accept(socket, ec);
-        if (!ec) net::co_spawn(ioc, guarded_session(std::move(socket)), net::detached);
+        if (!ec) {
+          auto executor = socket.get_executor();
+          net::co_spawn(executor, guarded_session(std::move(socket)), net::detached);
+        }
       }
       ec.clear();
     }
