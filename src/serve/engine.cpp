@@ -5,7 +5,7 @@
 #include <filesystem>
 
 #include "backend/cpu/gemm.h"
-#include "serve/sha256.h"
+#include "core/hash.h"
 
 namespace tether::serve {
 

@@ -1,5 +1,4 @@
-// Prometheus text output: histogram bucket semantics, label escaping, every series the contract names; SHA-256
-// against the FIPS test vectors (it names the served weights).
+// Prometheus text output: histogram bucket semantics, label escaping, every series the contract names.
 #include <gtest/gtest.h>
 
 #include <filesystem>
@@ -9,19 +8,12 @@
 
 #include "core/error.h"
 #include "serve/metrics.h"
-#include "serve/sha256.h"
 
 using namespace tether::serve;
 
 namespace {
 bool has_line(const std::string& text, const std::string& line) {
   return ("\n" + text).find("\n" + line + "\n") != std::string::npos;
-}
-std::string sha_hex(const std::string& s) {
-  Sha256 h;
-  h.update(reinterpret_cast<const uint8_t*>(s.data()), s.size());
-  const auto d = h.finish();
-  return to_hex(d.data(), d.size());
 }
 }  // namespace
 
@@ -76,30 +68,4 @@ TEST(Metrics, EscapesLabelValues) {
   EXPECT_EQ(escape_label("a\"b\\c\nd"), "a\\\"b\\\\c\\nd");
   Metrics m("1", "x\"y");
   EXPECT_NE(m.render().find("gemm=\"x\\\"y\""), std::string::npos);
-}
-
-TEST(Sha256, FipsVectors) {
-  EXPECT_EQ(sha_hex(""), "e3b0c44298fc1c149afbf4c8996fb92427ae41e4649b934ca495991b7852b855");
-  EXPECT_EQ(sha_hex("abc"), "ba7816bf8f01cfea414140de5dae2223b00361a396177a9cb410ff61f20015ad");
-  EXPECT_EQ(sha_hex("abcdbcdecdefdefgefghfghighijhijkijkljklmklmnlmnomnopnopq"),
-            "248d6a61d20638b8e5c026930c3e6039a33ce45964ff2167f6ecedd419db06c1");
-  // One million 'a', fed in uneven pieces to exercise the block buffering.
-  Sha256 h;
-  const std::string chunk(997, 'a');
-  std::size_t left = 1000000;
-  while (left > 0) {
-    const std::size_t n = std::min(left, chunk.size());
-    h.update(reinterpret_cast<const uint8_t*>(chunk.data()), n);
-    left -= n;
-  }
-  const auto d = h.finish();
-  EXPECT_EQ(to_hex(d.data(), d.size()), "cdc76e5c9914fb9281a1c7e284d73e67f1809a48a497200e046d39ccc7112cd0");
-}
-
-TEST(Sha256, HashesFiles) {
-  const auto path = std::filesystem::temp_directory_path() / ("tether_sha_" + std::to_string(::getpid()));
-  std::ofstream(path) << "abc";
-  EXPECT_EQ(sha256_file_hex(path.string()), "ba7816bf8f01cfea414140de5dae2223b00361a396177a9cb410ff61f20015ad");
-  std::filesystem::remove(path);
-  EXPECT_THROW(sha256_file_hex(path.string()), tether::Error);
 }
