@@ -17,6 +17,7 @@
 
 #include "backend/cpu/gemm.h"
 #include "cli/commands.h"
+#include "core/hash.h"
 #include "core/json_util.h"
 #include "core/safetensors.h"
 
@@ -262,6 +263,8 @@ void model_checks(const std::string& dir, std::vector<Check>& out) {
     const double avail = double(meminfo_kb("MemAvailable")) * 1024.0;
     out.push_back({"model", "weights", Status::ok,
                    count_str(params) + " parameters, " + gb(double(fs::file_size(d / "model.safetensors"))) + " on disk", ""});
+    out.push_back({"model", "sha256", Status::ok, "model.safetensors " + sha256_file_hex((d / "model.safetensors").string()),
+                   ""});
     out.push_back({"model", "fits in memory (fp32)", need < avail ? Status::ok : Status::fail,
                    "needs about " + gb(need) + ", " + gb(avail) + " available",
                    "free memory, or export in bf16 (about half) when that precision lands"});

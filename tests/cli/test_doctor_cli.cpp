@@ -18,6 +18,10 @@ TEST(DoctorCli, ReportsMachineAndModel) {
   std::set<std::string> groups;
   for (const auto& c : j["checks"]) groups.insert(c["group"].get<std::string>());
   for (const char* g : {"cpu", "memory", "disk", "cuda", "model"}) EXPECT_TRUE(groups.count(g)) << g;
+  bool hashed = false;
+  for (const auto& c : j["checks"])
+    hashed |= c["check"] == "sha256" && c["detail"].get<std::string>().size() == std::string("model.safetensors ").size() + 64;
+  EXPECT_TRUE(hashed) << r.out;
   const CliRun table = run_tether("doctor");
   EXPECT_EQ(table.code, 0);
   EXPECT_NE(table.out.find("GEMM library"), std::string::npos);
