@@ -942,3 +942,20 @@ def test_pipelined_and_chunked_requests(server):
                 break
             data += chunk
     assert parse_raw_response(data)[0] == 200
+
+
+def test_bf16_precision_is_served_and_reported(server):
+    """--precision bf16: /act and /config say so, and the chunk stays close to the fp32 server's."""
+    bf16 = ServeProcess(["--precision", "bf16"])
+    try:
+        got = ok_json(post_act(bf16, act_body(seed=5)))
+        assert got["inference_mode"]["precision"] == "bf16"
+        ref = ok_json(post_act(server, act_body(seed=5)))
+        assert ref["inference_mode"]["precision"] == "fp32"
+        a, b = check_actions(ref), check_actions(got)
+        diff = float(np.max(np.abs(a - b)))
+        assert 0.0 < diff < 0.02 * float(np.max(np.abs(a))), diff
+        status, _, body = request(bf16.port, "GET", "/config")
+        assert status == 200 and json.loads(body)["inference_mode"]["precision"] == "bf16"
+    finally:
+        assert bf16.stop() == 0, bf16.stderr_tail()

@@ -11,6 +11,7 @@
 #include "cli/commands.h"
 #include "cli/serve_flags.h"
 #include "core/json_util.h"
+#include "hub/hub_client.h"
 #include "models/model.h"
 
 namespace tether::cli {
@@ -22,35 +23,6 @@ namespace {
 fs::path registry_path() {
   if (const char* env = std::getenv("TETHER_REGISTRY"); env && *env) return env;
   return fs::path(TETHER_SOURCE_DIR) / "models" / "registry.json";
-}
-
-// The hub cache as huggingface_hub lays it out: HF_HUB_CACHE, else HF_HOME/hub, else ~/.cache/huggingface/hub.
-fs::path hf_hub_cache() {
-  if (const char* v = std::getenv("HF_HUB_CACHE"); v && *v) return v;
-  if (const char* v = std::getenv("HF_HOME"); v && *v) return fs::path(v) / "hub";
-  const char* home = std::getenv("HOME");
-  return fs::path(home ? home : "/") / ".cache" / "huggingface" / "hub";
-}
-
-// models--org--name/snapshots/<commit of refs/main>; with no refs/main, a lone snapshot is unambiguous.
-std::optional<fs::path> find_in_hf_cache(const std::string& repo) {
-  std::string folder = "models--" + repo;
-  for (std::size_t p = 0; (p = folder.find('/', p)) != std::string::npos;) folder.replace(p, 1, "--");
-  const fs::path root = hf_hub_cache() / folder;
-  std::error_code ec;
-  if (!fs::is_directory(root, ec)) return std::nullopt;
-  std::ifstream ref(root / "refs" / "main");
-  std::string commit;
-  if (ref && std::getline(ref, commit)) {
-    while (!commit.empty() && std::isspace(static_cast<unsigned char>(commit.back()))) commit.pop_back();
-    const fs::path snap = root / "snapshots" / commit;
-    if (!commit.empty() && fs::is_directory(snap, ec)) return snap;
-  }
-  std::vector<fs::path> snaps;
-  for (const auto& e : fs::directory_iterator(root / "snapshots", ec))
-    if (e.is_directory()) snaps.push_back(e.path());
-  if (snaps.size() == 1) return snaps.front();
-  return std::nullopt;
 }
 
 Json load_registry() {
@@ -100,9 +72,10 @@ std::string resolve_model(const Json& reg, const std::string& id) {
     return dir.string();
   }
   const std::string repo = json_get<std::string>(m, "hf_repo", where);
-  if (auto dir = find_in_hf_cache(repo)) return dir->string();
+  const hub::HubClient hub = hub::HubClient::from_env();
+  if (auto dir = hub.cached_snapshot(repo)) return *dir;
   throw Error(ErrorCode::not_found, "--model " + id + ": " + repo + " is not in the Hugging Face cache (" +
-                                        hf_hub_cache().string() + "); download it with `huggingface-cli download " +
+                                        hub.cache().root() + "); download it with `huggingface-cli download " +
                                         repo + "` (`tether models pull` comes later)");
 }
 

@@ -73,16 +73,7 @@ policy::Observation ObservationArgs::build(const policy::Policy& policy) const {
       throw Error(ErrorCode::invalid_argument, "--image expects CAMERA=FILE, got '" + spec_str + "'");
     obs.images[resolve_camera(spec_str.substr(0, eq), spec.cameras)] = vision::load_image(spec_str.substr(eq + 1));
   }
-  if (images.empty()) {
-    for (std::size_t c = 0; c < spec.cameras.size(); ++c) {
-      if (spec.cameras[c].find("empty_camera_") != std::string::npos) continue;
-      vision::Image img;
-      img.height = int(spec.image_height);
-      img.width = int(spec.image_width);
-      img.rgb.assign(std::size_t(img.height) * img.width * 3, 128);
-      obs.images[spec.cameras[c]] = std::move(img);
-    }
-  }
+  if (images.empty()) obs.images = policy::synthetic_observation(spec).images;
   obs.state = state.empty() ? std::vector<float>(std::size_t(spec.state_dim), 0.f) : parse_floats(state, "--state");
   if (int64_t(obs.state.size()) != spec.state_dim)
     throw Error(ErrorCode::invalid_argument, "--state has " + std::to_string(obs.state.size()) +

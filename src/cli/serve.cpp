@@ -8,6 +8,7 @@
 #include <iostream>
 
 #include "cli/commands.h"
+#include "cli/observation_args.h"
 #include "cli/serve_flags.h"
 #include "core/error.h"
 
@@ -56,6 +57,7 @@ void add_serve_flags(CLI::App* sub, ServeFlags& f) {
       ->capture_default_str()->check(CLI::Range(0, 3600000));
   sub->add_option("--threads", o.threads, "I/O threads (inference has its own)")->capture_default_str()
       ->check(CLI::Range(1, 256));
+  add_precision_flag(sub, f.precision);
 }
 
 int run_server(const std::string& checkpoint_dir, const ServeFlags& flags) {
@@ -64,7 +66,8 @@ int run_server(const std::string& checkpoint_dir, const ServeFlags& flags) {
     throw Error(ErrorCode::not_found, checkpoint_dir + ": not a checkpoint directory");
   serve::ServerOptions options = flags.options;
   options.api_key = read_api_key(flags);
-  serve::Server server(options, [checkpoint_dir] { return serve::load_policy_engine(checkpoint_dir); });
+  const models::LoadOptions load = load_options(flags.precision);
+  serve::Server server(options, [checkpoint_dir, load] { return serve::load_policy_engine(checkpoint_dir, load); });
   const uint16_t port = server.start();
   std::printf("tether serve: listening on http://%s:%u\n", options.host.c_str(), unsigned(port));
   std::fflush(stdout);

@@ -12,6 +12,7 @@ namespace tether::cli {
 struct ServeFlags {
   serve::ServerOptions options;
   std::string api_key_file;
+  std::string precision = "fp32";
 };
 
 void add_serve_flags(CLI::App* sub, ServeFlags& flags);

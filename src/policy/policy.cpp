@@ -28,6 +28,21 @@ std::unique_ptr<Policy> Policy::load(const std::string& checkpoint_dir, const mo
   return p;
 }
 
+Observation synthetic_observation(const models::ModelSpec& spec) {
+  Observation obs;
+  for (const auto& camera : spec.cameras) {
+    if (camera.find("empty_camera_") != std::string::npos) continue;  // the config's synthetic fillers
+    vision::Image img;
+    img.height = spec.image_height > 0 ? int(spec.image_height) : 224;
+    img.width = spec.image_width > 0 ? int(spec.image_width) : 224;
+    img.rgb.assign(std::size_t(img.height) * std::size_t(img.width) * 3, 128);
+    obs.images[camera] = std::move(img);
+  }
+  obs.state.assign(std::size_t(spec.state_dim), 0.0f);
+  obs.instruction = "warm up";
+  return obs;
+}
+
 Prediction Policy::predict(const std::vector<Observation>& batch) {
   const auto t0 = std::chrono::steady_clock::now();
   const auto& s = spec();

@@ -19,6 +19,10 @@ struct Observation {
   uint64_t seed = 0;
 };
 
+// A stand-in observation for warm-ups and benchmarks: a mid-grey frame for every real camera at the model's input
+// size, a zero state, a short instruction.
+Observation synthetic_observation(const models::ModelSpec& spec);
+
 struct ActionChunk {
   int64_t chunk_size = 0, action_dim = 0;
   std::vector<float> actions;  // [chunk_size, action_dim], robot units

@@ -19,9 +19,6 @@ struct Engine {
 };
 
 // Loads the checkpoint directory with Policy::load and hashes its weights file.
-Engine load_policy_engine(const std::string& checkpoint_dir);
-
-// The warm-up input: a mid-grey frame for every real camera at the model's input size, a zero state.
-policy::Observation synthetic_observation(const models::ModelSpec& spec);
+Engine load_policy_engine(const std::string& checkpoint_dir, const models::LoadOptions& options = {});
 
 }  // namespace tether::serve

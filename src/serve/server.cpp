@@ -208,7 +208,7 @@ struct Server::Impl {
       for (const auto& w : engine->load_warnings) std::fprintf(stderr, "tether serve: warning: %s\n", w.c_str());
       try {
         const auto t0 = Clock::now();
-        batcher->submit(synthetic_observation(engine->spec), Clock::time_point::max()).get();
+        batcher->submit(policy::synthetic_observation(engine->spec), Clock::time_point::max()).get();
         std::fprintf(stderr, "tether serve: ready (warm-up %.1f ms)\n", ms_since(t0));
         state.store(HealthState::ready, std::memory_order_release);
       } catch (const std::exception& ex) {

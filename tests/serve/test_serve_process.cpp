@@ -243,9 +243,10 @@ TEST(GoCli, FindsACheckpointInTheHuggingFaceCache) {
   const auto cache = temp_dir("hf_home") / "hub";
   const auto repo = cache / "models--lerobot--smolvla_base";
   std::filesystem::create_directories(repo / "refs");
-  std::ofstream(repo / "refs" / "main") << "0123abcd\n";
+  const std::string commit = "0123abcd0123abcd0123abcd0123abcd0123abcd";  // a real cache names 40-hex commits
+  std::ofstream(repo / "refs" / "main") << commit << "\n";
   std::filesystem::create_directories(repo / "snapshots");
-  std::filesystem::create_directory_symlink(kDemo, repo / "snapshots" / "0123abcd");
+  std::filesystem::create_directory_symlink(kDemo, repo / "snapshots" / commit);
   // A registry given by TETHER_REGISTRY, and HF_HOME (not HF_HUB_CACHE) locating the cache.
   const auto reg = temp_dir("registry") / "registry.json";
   std::ofstream(reg) << R"({"models": {"base": {"family": "smolvla", "hf_repo": "lerobot/smolvla_base", "supported": true}}})";
