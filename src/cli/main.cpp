@@ -19,6 +19,7 @@ int main(int argc, char** argv) {
       tether::cli::add_go(app),
       tether::cli::add_doctor(app),
       tether::cli::add_inspect(app),
+      tether::cli::add_models(app),
   };
   try {
     app.parse(argc, argv);

@@ -1,0 +1,52 @@
+// The model registry shipped with Tether (models/registry.json): ids, families, Hugging Face repos, sizes, and
+// where each checkpoint is found on this machine. Shared by `tether go` and `tether models`.
+#pragma once
+
+#include <optional>
+#include <string>
+#include <vector>
+
+#include "core/json_util.h"
+
+namespace tether::cli {
+
+struct RegistryEntry {
+  std::string id, family, description, license;
+  std::string hf_repo;      // empty for a bundled checkpoint
+  std::string bundled_dir;  // absolute; empty for a hub checkpoint
+  std::optional<int64_t> parameters;
+  bool supported = false;  // the registry says so and this build has the family
+  // Other repos whose files the checkpoint needs (the VLM backbone's config and tokenizer), with patterns.
+  struct Requirement {
+    std::string repo;
+    std::vector<std::string> patterns;
+  };
+  std::vector<Requirement> requires_repos;
+  std::vector<std::string> patterns;  // which files of hf_repo to download
+};
+
+class Registry {
+ public:
+  // models/registry.json next to the sources, or TETHER_REGISTRY.
+  static Registry load();
+  const std::string& path() const { return path_; }
+  const std::vector<RegistryEntry>& entries() const { return entries_; }
+  // The entry for `id`; an invalid_argument error listing the known ids otherwise.
+  const RegistryEntry& get(const std::string& id) const;
+
+ private:
+  std::string path_;
+  std::vector<RegistryEntry> entries_;
+};
+
+// The checkpoint directory of an entry on this machine (bundled, or a snapshot in the Hugging Face cache);
+// nullopt when it has not been downloaded.
+std::optional<std::string> local_checkpoint(const RegistryEntry& entry);
+
+// Prints the registry as a table (or JSON): id, family, source, parameters, support, local presence, license.
+int list_models(const Registry& reg, bool json);
+
+// Approximate memory to run `parameters` weights at `precision` ("fp32", "bf16", "fp16"), activations included.
+double memory_needed_bytes(int64_t parameters, const std::string& precision);
+
+}  // namespace tether::cli
