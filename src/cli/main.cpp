@@ -20,6 +20,8 @@ int main(int argc, char** argv) {
       tether::cli::add_doctor(app),
       tether::cli::add_inspect(app),
       tether::cli::add_models(app),
+      tether::cli::add_export(app),
+      tether::cli::add_validate(app),
   };
   try {
     app.parse(argc, argv);

@@ -11,6 +11,7 @@
 
 #include "backend/cpu/gemm.h"
 #include "backend/cpu/kernels.h"
+#include "models/backbone.h"
 #include "models/llama_decoder.h"
 #include "models/siglip.h"
 #include "text/tokenizer.h"
@@ -28,35 +29,6 @@ constexpr float kRopeWavelength = 10000.0f;
 
 double ms_since(std::chrono::steady_clock::time_point t0) {
   return std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - t0).count();
-}
-
-// Finds the VLM backbone files (config.json, tokenizer.json) named by vlm_model_name: a directory relative to
-// the checkpoint, an absolute directory, or a snapshot in the Hugging Face cache.
-fs::path resolve_vlm_dir(const fs::path& checkpoint_dir, const std::string& name) {
-  std::vector<fs::path> tried;
-  auto usable = [&](const fs::path& p) {
-    tried.push_back(p);
-    return fs::is_regular_file(p / "config.json");
-  };
-  if (usable(checkpoint_dir / name)) return checkpoint_dir / name;
-  if (fs::path(name).is_absolute() && usable(name)) return name;
-  fs::path cache;
-  if (const char* v = std::getenv("HF_HUB_CACHE")) cache = v;
-  else if (const char* h = std::getenv("HF_HOME")) cache = fs::path(h) / "hub";
-  else if (const char* home = std::getenv("HOME")) cache = fs::path(home) / ".cache" / "huggingface" / "hub";
-  if (!cache.empty() && name.find('/') != std::string::npos) {
-    std::string repo = "models--";
-    for (char c : name) repo += c == '/' ? std::string("--") : std::string(1, c);
-    const fs::path repo_dir = cache / repo;
-    std::string revision = "main";
-    if (std::ifstream ref(repo_dir / "refs" / "main"); ref) std::getline(ref, revision);
-    if (usable(repo_dir / "snapshots" / revision)) return repo_dir / "snapshots" / revision;
-  }
-  std::string where;
-  for (const auto& p : tried) where += "\n  " + p.string();
-  throw Error(ErrorCode::not_found, "VLM backbone '" + name + "' (vlm_model_name in " +
-                                        (checkpoint_dir / "config.json").string() +
-                                        ") not found; looked for config.json in:" + where);
 }
 
 // lerobot's get_intermediate_size for the action expert's MLP width.
@@ -185,7 +157,7 @@ SmolVLA::SmolVLA(const fs::path& dir, const Json& config, const LoadOptions& opt
   tok_settings_ = read_tokenizer_settings(dir, config);
 
   // VLM backbone: architecture and tokenizer come from the backbone's own files.
-  const fs::path vlm_dir = resolve_vlm_dir(dir, json_get<std::string>(config, "vlm_model_name", where));
+  const fs::path vlm_dir = find_backbone_dir(dir, json_get<std::string>(config, "vlm_model_name", where));
   const std::string vlm_where = (vlm_dir / "config.json").string();
   const Json vlm_cfg = read_json_file(vlm_where);
   const VisionConfig vision_cfg = VisionConfig::from_json(vlm_cfg.value("vision_config", Json::object()), vlm_where);

@@ -165,3 +165,16 @@ TEST(DType, HalfSubnormalsAndSpecials) {
   EXPECT_TRUE(std::isinf(f16_to_f32(0x7c00)));
   EXPECT_EQ(f16_to_f32(0x8000), -0.0f);
 }
+
+TEST(DType, HalfRoundTripAndRounding) {
+  for (uint32_t h = 0; h < 0x10000; ++h) {
+    const float f = f16_to_f32(uint16_t(h));
+    if (std::isnan(f)) continue;
+    EXPECT_EQ(f32_to_f16(f), uint16_t(h)) << h;  // every half survives a round trip
+  }
+  EXPECT_EQ(f32_to_f16(1.0f + std::ldexp(1.0f, -11)), 0x3c00);  // halfway: to even (down)
+  EXPECT_EQ(f32_to_f16(1.0f + 3 * std::ldexp(1.0f, -11)), 0x3c02);  // halfway: to even (up)
+  EXPECT_EQ(f32_to_f16(70000.0f), 0x7c00);
+  EXPECT_EQ(f32_to_f16(std::ldexp(1.0f, -25) * 1.5f), 0x0001);  // rounds up to the smallest subnormal
+  EXPECT_EQ(f32_to_f16(std::ldexp(1.0f, -26)), 0x0000);
+}

@@ -1,0 +1,174 @@
+// `tether export`: a self-contained deployment directory (weights in the chosen precision, config, normalisation
+// stats, backbone tokenizer and config) plus VERIFICATION.md, a receipt of what was exported and how far the export
+// is from the fp32 source on seeded inputs (and from upstream when the source is an oracle fixture).
+// Deterministic: exporting the same input twice gives byte-identical files.
+#include <cstdio>
+#include <filesystem>
+#include <fstream>
+#include <iostream>
+#include <sstream>
+
+#include "cli/commands.h"
+#include "cli/registry.h"
+#include "cli/verify.h"
+#include "core/hash.h"
+#include "core/safetensors.h"
+#include "models/backbone.h"
+
+namespace tether::cli {
+
+namespace fs = std::filesystem;
+
+namespace {
+
+struct ExportArgs {
+  std::string source, out, precision = "fp32", target;
+};
+
+// The source as a directory: a checkpoint directory, or a registry id whose checkpoint is on disk.
+std::string resolve_source(const std::string& source) {
+  if (fs::is_directory(source)) return fs::path(source).lexically_normal().string();
+  const Registry reg = Registry::load();
+  const RegistryEntry& e = reg.get(source);
+  if (auto dir = local_checkpoint(e)) return *dir;
+  throw Error(ErrorCode::not_found, source + ": not on disk yet (tether models pull " + source + ")");
+}
+
+// Floating-point tensors converted to `precision`; everything else copied as is. Names stay sorted.
+void convert_weights(const std::string& in, const std::string& out, const std::string& precision) {
+  const SafeTensorsFile f = SafeTensorsFile::open(in);
+  std::map<std::string, Tensor> tensors;
+  std::vector<std::shared_ptr<std::vector<uint16_t>>> halves;
+  for (const auto& name : f.names()) {
+    Tensor t = f.get(name);
+    const bool floating = t.dtype == DType::f32 || t.dtype == DType::bf16 || t.dtype == DType::f16;
+    if (!floating || precision == "fp32") {
+      if (floating && t.dtype != DType::f32) t = Tensor::from_f32(t.shape, t.to_f32());
+      tensors[name] = t;
+      continue;
+    }
+    const std::vector<float> v = t.to_f32();
+    auto buf = std::make_shared<std::vector<uint16_t>>(v.size());
+    for (std::size_t i = 0; i < v.size(); ++i) (*buf)[i] = precision == "bf16" ? f32_to_bf16(v[i]) : f32_to_f16(v[i]);
+    halves.push_back(buf);
+    tensors[name] = Tensor{precision == "bf16" ? DType::bf16 : DType::f16, t.shape, buf->data(), buf};
+  }
+  std::map<std::string, std::string> meta = f.metadata();
+  meta["format"] = "pt";
+  write_safetensors(out, tensors, meta);
+}
+
+std::string table(const std::vector<CaseDiff>& diffs) {
+  std::ostringstream s;
+  s << "| case | values | max \\|diff\\| | mean \\|diff\\| |\n|---|---|---|---|\n";
+  char buf[128];
+  for (const auto& d : diffs) {
+    std::snprintf(buf, sizeof buf, "| %s | %lld | %.3e | %.3e |\n", d.name.c_str(), (long long)d.values, d.max_abs,
+                  d.mean_abs);
+    s << buf;
+  }
+  return s.str();
+}
+
+int run_export(const ExportArgs& a) {
+  const std::string src = resolve_source(a.source);
+  const fs::path out(a.out);
+  if (fs::exists(out) && !fs::is_directory(out)) throw Error(ErrorCode::invalid_argument, a.out + ": exists and is not a directory");
+  fs::create_directories(out);
+  Json target = nullptr;
+  if (!a.target.empty()) {
+    for (const auto& t : json_get<Json>(read_json_file(data_file("targets.json")), "targets", data_file("targets.json")))
+      if (t.value("id", "") == a.target) target = t;
+    if (target.is_null()) throw Error(ErrorCode::invalid_argument, "--target " + a.target + ": unknown (see tether inspect targets)");
+  }
+
+  // Source files and their hashes (the receipt names exactly what was exported).
+  std::vector<std::string> names;
+  for (const auto& e : fs::directory_iterator(src)) {
+    const std::string name = e.path().filename().string();
+    if (e.is_regular_file() && (name == "config.json" || name == "model.safetensors" ||
+                                (name.rfind("policy_", 0) == 0 && (name.ends_with(".json") || name.ends_with(".safetensors")))))
+      names.push_back(name);
+  }
+  std::sort(names.begin(), names.end());  // directory order is the filesystem's: sort for a deterministic receipt
+  Json source_files = Json::object();
+  std::vector<std::string> copied;
+  for (const auto& name : names) {
+    source_files[name] = sha256_file_hex((fs::path(src) / name).string());
+    if (name != "config.json" && name != "model.safetensors") copied.push_back(name);
+  }
+  Json config = read_json_file((fs::path(src) / "config.json").string());
+  const fs::path backbone = models::find_backbone_dir(src, json_get<std::string>(config, "vlm_model_name", src + "/config.json"));
+
+  // Write the deployment directory.
+  for (const auto& name : copied) fs::copy_file(fs::path(src) / name, out / name, fs::copy_options::overwrite_existing);
+  fs::create_directories(out / "vlm");
+  for (const auto& name : models::backbone_files(backbone))
+    fs::copy_file(backbone / name, out / "vlm" / name, fs::copy_options::overwrite_existing);
+  config["vlm_model_name"] = "vlm";  // the backbone travels with the export
+  std::ofstream(out / "config.json", std::ios::binary | std::ios::trunc) << config.dump(4) << "\n";
+  convert_weights((fs::path(src) / "model.safetensors").string(), (out / "model.safetensors").string(), a.precision);
+
+  // Measure the export against the fp32 source (and upstream, when the source is an oracle fixture).
+  auto reference = policy::Policy::load(src);
+  auto exported = policy::Policy::load(out.string());
+  const std::vector<CaseDiff> seeded = compare_seeded(*reference, *exported, 4);
+  const std::vector<CaseDiff> oracle = compare_with_oracle(src, *exported);
+
+  Json files = Json::object();
+  std::vector<fs::path> outputs;
+  for (const auto& e : fs::recursive_directory_iterator(out))
+    if (e.is_regular_file() && e.path().filename() != "VERIFICATION.md" && e.path().filename() != "tether_export.json")
+      outputs.push_back(e.path());
+  std::sort(outputs.begin(), outputs.end());
+  for (const auto& p : outputs) files[fs::relative(p, out).string()] = sha256_file_hex(p.string());
+  Json diffs = Json::array();
+  for (const auto* group : {&seeded, &oracle})
+    for (const auto& d : *group) diffs.push_back({{"case", d.name}, {"max_abs", d.max_abs}, {"mean_abs", d.mean_abs}});
+  const Json manifest = {{"tether_version", TETHER_VERSION},
+                         {"source", {{"path", fs::absolute(src).lexically_normal().string()}, {"files", source_files}}},
+                         {"precision", a.precision},
+                         {"target", target},
+                         {"files", files},
+                         {"verification", diffs}};
+  std::ofstream(out / "tether_export.json", std::ios::binary | std::ios::trunc) << manifest.dump(2) << "\n";
+
+  std::ostringstream md;
+  md << "# Verification receipt\n\n"
+     << "Exported by Tether " << TETHER_VERSION << " (`tether export`), precision **" << a.precision << "**"
+     << (target.is_null() ? std::string() : ", target **" + a.target + "**") << ".\n\n"
+     << "## Source\n\n`" << fs::absolute(src).lexically_normal().string() << "`\n\n| file | sha256 |\n|---|---|\n";
+  for (auto it = source_files.begin(); it != source_files.end(); ++it) md << "| " << it.key() << " | " << it->get<std::string>() << " |\n";
+  md << "\nBackbone files copied from `" << backbone.string() << "` into `vlm/`.\n\n## Output files\n\n| file | sha256 |\n|---|---|\n";
+  for (auto it = files.begin(); it != files.end(); ++it) md << "| " << it.key() << " | " << it->get<std::string>() << " |\n";
+  md << "\n## Measured difference\n\nAction chunks (robot units) of the export against the fp32 source, both run by Tether in float32 "
+        "on seeded inputs (pseudo-random frames, states and noise):\n\n"
+     << table(seeded);
+  if (!oracle.empty())
+    md << "\nAgainst the upstream PyTorch outputs recorded in the oracle fixture next to the source:\n\n" << table(oracle);
+  md << "\nRe-check at any time with `tether validate export <this directory>`.\n";
+  std::ofstream(out / "VERIFICATION.md", std::ios::binary | std::ios::trunc) << md.str();
+
+  double worst = 0;
+  for (const auto* group : {&seeded, &oracle})
+    for (const auto& d : *group) worst = std::max(worst, d.max_abs);
+  std::printf("exported %s -> %s (%s); max |diff| against the source %.3e; receipt: %s\n", src.c_str(), out.string().c_str(),
+              a.precision.c_str(), worst, (out / "VERIFICATION.md").string().c_str());
+  return kExitOk;
+}
+
+}  // namespace
+
+Verb add_export(CLI::App& app) {
+  auto args = std::make_shared<ExportArgs>();
+  CLI::App* sub = app.add_subcommand("export", "Write a self-contained deployment directory with a VERIFICATION.md receipt");
+  sub->add_option("source", args->source, "Checkpoint directory or registry id")->required();
+  sub->add_option("-o,--output", args->out, "Export directory")->required();
+  sub->add_option("--precision", args->precision, "Weights precision: fp32, bf16 or fp16")
+      ->check(CLI::IsMember({"fp32", "bf16", "fp16"}))
+      ->capture_default_str();
+  sub->add_option("--target", args->target, "Deployment target (see tether inspect targets), recorded in the receipt");
+  return {sub, [args] { return run_export(*args); }};
+}
+
+}  // namespace tether::cli

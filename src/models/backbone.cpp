@@ -1,0 +1,56 @@
+#include "models/backbone.h"
+
+#include <cstdlib>
+#include <fstream>
+
+#include "core/error.h"
+
+namespace tether::models {
+
+namespace fs = std::filesystem;
+
+namespace {
+
+fs::path hub_cache_root() {
+  if (const char* v = std::getenv("HF_HUB_CACHE"); v && *v) return v;
+  if (const char* v = std::getenv("HF_HOME"); v && *v) return fs::path(v) / "hub";
+  if (const char* v = std::getenv("XDG_CACHE_HOME"); v && *v) return fs::path(v) / "huggingface" / "hub";
+  const char* home = std::getenv("HOME");
+  return fs::path(home ? home : "/") / ".cache" / "huggingface" / "hub";
+}
+
+}  // namespace
+
+fs::path find_backbone_dir(const fs::path& checkpoint_dir, const std::string& name) {
+  std::vector<fs::path> tried;
+  auto usable = [&](const fs::path& p) {
+    tried.push_back(p);
+    return fs::is_regular_file(p / "config.json");
+  };
+  if (usable(checkpoint_dir / name)) return checkpoint_dir / name;
+  if (fs::path(name).is_absolute() && usable(name)) return name;
+  if (name.find('/') != std::string::npos && !fs::path(name).is_absolute()) {
+    std::string repo = "models--";
+    for (char c : name) repo += c == '/' ? std::string("--") : std::string(1, c);
+    const fs::path repo_dir = hub_cache_root() / repo;
+    std::string revision = "main";
+    if (std::ifstream ref(repo_dir / "refs" / "main"); ref) std::getline(ref, revision);
+    if (usable(repo_dir / "snapshots" / revision)) return repo_dir / "snapshots" / revision;
+  }
+  std::string where;
+  for (const auto& p : tried) where += (where.empty() ? "" : ", ") + p.string();
+  throw Error(ErrorCode::not_found, "backbone '" + name + "' (vlm_model_name in " +
+                                        (checkpoint_dir / "config.json").string() + ") not found: no config.json in " +
+                                        where + " (tether models pull fetches it with the checkpoint)");
+}
+
+std::vector<std::string> backbone_files(const fs::path& dir) {
+  std::vector<std::string> out;
+  for (const char* f : {"config.json", "tokenizer.json", "tokenizer_config.json", "special_tokens_map.json",
+                        "added_tokens.json", "vocab.json", "merges.txt", "processor_config.json",
+                        "preprocessor_config.json", "chat_template.json"})
+    if (fs::is_regular_file(dir / f)) out.push_back(f);
+  return out;
+}
+
+}  // namespace tether::models

@@ -1,0 +1,19 @@
+// Locating a policy's backbone files (its VLM's config.json and tokenizer), which LeRobot checkpoints name by Hugging
+// Face id rather than ship.
+#pragma once
+
+#include <filesystem>
+#include <string>
+#include <vector>
+
+namespace tether::models {
+
+// The directory holding `name`'s config.json: `name` relative to the checkpoint directory, an absolute path, or the
+// snapshot of Hugging Face repo `name` in the local hub cache (HF_HUB_CACHE, HF_HOME/hub, XDG_CACHE_HOME or
+// ~/.cache, refs/main). Throws not_found naming every place looked at.
+std::filesystem::path find_backbone_dir(const std::filesystem::path& checkpoint_dir, const std::string& name);
+
+// The backbone files a deployment needs (architecture, tokenizer, processor settings), those present in `dir`.
+std::vector<std::string> backbone_files(const std::filesystem::path& dir);
+
+}  // namespace tether::models
