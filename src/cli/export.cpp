@@ -70,8 +70,11 @@ std::string table(const std::vector<CaseDiff>& diffs) {
   return s.str();
 }
 
-int run_export(const ExportArgs& a) {
-  const std::string src = resolve_source(a.source);
+}  // namespace
+
+double export_checkpoint(const std::string& src, const std::string& out_dir, const std::string& precision,
+                         const std::string& target_id) {
+  const ExportArgs a{src, out_dir, precision, target_id};
   const fs::path out(a.out);
   if (fs::exists(out) && !fs::is_directory(out)) throw Error(ErrorCode::invalid_argument, a.out + ": exists and is not a directory");
   fs::create_directories(out);
@@ -152,8 +155,16 @@ int run_export(const ExportArgs& a) {
   double worst = 0;
   for (const auto* group : {&seeded, &oracle})
     for (const auto& d : *group) worst = std::max(worst, d.max_abs);
-  std::printf("exported %s -> %s (%s); max |diff| against the source %.3e; receipt: %s\n", src.c_str(), out.string().c_str(),
-              a.precision.c_str(), worst, (out / "VERIFICATION.md").string().c_str());
+  return worst;
+}
+
+namespace {
+
+int run_export(const ExportArgs& a) {
+  const std::string src = resolve_source(a.source);
+  const double worst = export_checkpoint(src, a.out, a.precision, a.target);
+  std::printf("exported %s -> %s (%s); max |diff| against the source %.3e; receipt: %s\n", src.c_str(), a.out.c_str(),
+              a.precision.c_str(), worst, (fs::path(a.out) / "VERIFICATION.md").string().c_str());
   return kExitOk;
 }
 

@@ -21,18 +21,53 @@ namespace fs = std::filesystem;
 
 namespace {
 
-// The checkpoint directory for `id`, or an Error (exit 2) saying exactly what is missing and what to do.
-std::string resolve_model(const Registry& reg, const std::string& id) {
-  const RegistryEntry& e = reg.get(id);
-  if (!e.supported)
-    throw Error(ErrorCode::unsupported, "--model " + id + ": the " + e.family +
-                                            " family is not supported by this Tether build yet (supported: smolvla)");
-  if (auto dir = local_checkpoint(e)) return *dir;
-  if (!e.bundled_dir.empty())
-    throw Error(ErrorCode::not_found, "--model " + id + ": bundled checkpoint " + e.bundled_dir + " is missing");
-  throw Error(ErrorCode::not_found, "--model " + id + ": " + e.hf_repo + " is not in the Hugging Face cache (" +
-                                        hub::HubClient::from_env().cache().root() + "); download it with `tether models pull " +
-                                        id + "`");
+int64_t available_memory_bytes() {
+  std::ifstream in("/proc/meminfo");
+  std::string key, unit;
+  int64_t value = 0;
+  while (in >> key >> value >> unit)
+    if (key == "MemAvailable:") return value * 1024;
+  return 0;
+}
+
+fs::path tether_cache() {
+  if (const char* v = std::getenv("TETHER_CACHE"); v && *v) return v;
+  const char* home = std::getenv("HOME");
+  return fs::path(home ? home : "/") / ".cache" / "tether";
+}
+
+// fp32 (the reference) unless asked otherwise or the model would not fit this machine's memory in fp32.
+std::string pick_precision(const RegistryEntry& e, const std::string& asked) {
+  if (!asked.empty()) return asked;
+  const int64_t avail = available_memory_bytes();
+  if (e.parameters && avail > 0 && memory_needed_bytes(*e.parameters, "fp32") > 0.8 * double(avail)) {
+    std::fprintf(stderr, "tether go: %s does not fit in fp32 here (%.1f GB available): using bf16\n", e.id.c_str(),
+                 double(avail) / 1e9);
+    return "bf16";
+  }
+  return "fp32";
+}
+
+// The export for (model, precision) under the Tether cache, rebuilt when it is missing, made by another Tether
+// version, or made from another source.
+std::string cached_export(const RegistryEntry& e, const std::string& src, const std::string& precision) {
+  const fs::path dir = tether_cache() / "exports" / TETHER_VERSION / (e.id + "-" + precision);
+  const fs::path manifest = dir / "tether_export.json";
+  if (fs::exists(manifest)) {
+    const Json m = read_json_file(manifest.string());
+    const std::string source = m.value("source", Json::object()).value("path", "");
+    if (m.value("tether_version", "") == TETHER_VERSION && source == fs::absolute(src).lexically_normal().string() &&
+        m.value("precision", "") == precision) {
+      std::fprintf(stderr, "tether go: using the export in %s\n", dir.string().c_str());
+      return dir.string();
+    }
+  }
+  std::fprintf(stderr, "tether go: exporting %s (%s) to %s\n", e.id.c_str(), precision.c_str(), dir.string().c_str());
+  fs::remove_all(dir);
+  const double worst = export_checkpoint(src, dir.string(), precision, "");
+  std::fprintf(stderr, "tether go: export verified, max |diff| against the source %.3e (receipt: %s)\n", worst,
+               (dir / "VERIFICATION.md").string().c_str());
+  return dir.string();
 }
 
 }  // namespace
@@ -44,17 +79,37 @@ Verb add_go(CLI::App& app) {
     ServeFlags flags;
   };
   auto args = std::make_shared<Args>();
-  CLI::App* sub = app.add_subcommand("go", "Serve a model by name from the registry (see --list)");
+  CLI::App* sub = app.add_subcommand(
+      "go", "Probe this machine, pull the model if missing, export it (cached per Tether version) and serve it");
   sub->add_option("--model", args->model, "Registry id, e.g. smolvla-demo or smolvla-base");
   sub->add_flag("--list", args->list, "List the registry's models and exit");
   add_serve_flags(sub, args->flags);
-  return {sub, [args] {
+  return {sub, [args, sub] {
             const Registry reg = Registry::load();
             if (args->list) return list_models(reg, false);
             if (args->model.empty()) throw Error(ErrorCode::invalid_argument, "--model is required (see tether go --list)");
-            const std::string dir = resolve_model(reg, args->model);
-            std::fprintf(stderr, "tether go: %s -> %s\n", args->model.c_str(), dir.c_str());
-            return run_server(dir, args->flags);
+            const RegistryEntry& e = reg.get(args->model);
+            if (!e.supported)
+              throw Error(ErrorCode::unsupported, "--model " + e.id + ": the " + e.family +
+                                                      " family is not supported by this Tether build yet (supported: smolvla)");
+            std::optional<std::string> src = local_checkpoint(e);
+            if (!src) {
+              if (!e.bundled_dir.empty())
+                throw Error(ErrorCode::not_found, "--model " + e.id + ": bundled checkpoint " + e.bundled_dir + " is missing");
+              std::fprintf(stderr, "tether go: %s is not on disk: pulling it\n", e.id.c_str());
+              try {
+                src = pull_model(e);
+              } catch (const Error& err) {
+                throw Error(err.code(), "--model " + e.id + ": " + e.hf_repo +
+                                            " is not on disk and could not be downloaded (" + err.what() +
+                                            "); retry with network access or `tether models pull " + e.id + "`");
+              }
+            }
+            ServeFlags flags = args->flags;
+            flags.precision = pick_precision(e, sub->get_option("--precision")->count() ? args->flags.precision : "");
+            const std::string dir = cached_export(e, *src, flags.precision);
+            std::fprintf(stderr, "tether go: %s -> %s (%s)\n", e.id.c_str(), dir.c_str(), flags.precision.c_str());
+            return run_server(dir, flags);
           }};
 }
 

@@ -135,18 +135,22 @@ int run_pull(const ModelsArgs& a) {
     std::printf("%s is bundled with Tether: %s\n", e.id.c_str(), e.bundled_dir.c_str());
     return kExitOk;
   }
+  std::printf("%s\n", pull_model(e, a.revision).c_str());
+  return kExitOk;
+}
+
+}  // namespace
+
+std::string pull_model(const RegistryEntry& e, const std::string& revision) {
+  if (!e.bundled_dir.empty()) return e.bundled_dir;
   hub::HubClient hub = hub::HubClient::from_env();
   for (const auto& req : e.requires_repos) {
     std::fprintf(stderr, "pulling %s (needed by %s)\n", req.repo.c_str(), e.id.c_str());
     hub.snapshot_download(req.repo, "main", req.patterns);
   }
-  std::fprintf(stderr, "pulling %s @ %s\n", e.hf_repo.c_str(), a.revision.c_str());
-  const std::string dir = hub.snapshot_download(e.hf_repo, a.revision, e.patterns);
-  std::printf("%s\n", dir.c_str());
-  return kExitOk;
+  std::fprintf(stderr, "pulling %s @ %s\n", e.hf_repo.c_str(), revision.c_str());
+  return hub.snapshot_download(e.hf_repo, revision, e.patterns);
 }
-
-}  // namespace
 
 Verb add_models(CLI::App& app) {
   auto args = std::make_shared<ModelsArgs>();

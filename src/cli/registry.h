@@ -43,6 +43,15 @@ class Registry {
 // nullopt when it has not been downloaded.
 std::optional<std::string> local_checkpoint(const RegistryEntry& entry);
 
+// Downloads the entry's files (and those of the repos it requires) into the Hugging Face cache; returns the
+// checkpoint directory. A bundled entry is returned as is.
+std::string pull_model(const RegistryEntry& entry, const std::string& revision = "main");
+
+// Writes a deployment directory for checkpoint `src` into `out` (see `tether export`); returns the largest measured
+// max |diff| against the fp32 source.
+double export_checkpoint(const std::string& src, const std::string& out, const std::string& precision,
+                         const std::string& target);
+
 // Prints the registry as a table (or JSON): id, family, source, parameters, support, local presence, license.
 int list_models(const Registry& reg, bool json);
 

@@ -212,7 +212,8 @@ TEST(GoCli, UnknownIdAndUnsupportedFamilyExit2) {
 
 TEST(GoCli, MissingDownloadSaysHowToGetIt) {
   const auto cache = temp_dir("empty_cache");
-  const std::string env = "HF_HUB_CACHE=" + cache.string() + " ";
+  // Offline: the pull go attempts must fail at once, without reaching for the network.
+  const std::string env = "HF_HUB_CACHE=" + cache.string() + " HF_HUB_OFFLINE=1 ";
   const CliRun m = [&] {
     CliRun out;
     FILE* pipe = popen((env + TETHER_BINARY + " go --model smolvla-base --port 0 2>&1").c_str(), "r");
@@ -230,12 +231,25 @@ TEST(GoCli, MissingDownloadSaysHowToGetIt) {
 }
 
 TEST(GoCli, ServesTheBundledDemo) {
-  ServeProcess server({"go", "--model", "smolvla-demo", "--port", "0"});
-  wait_ready(server.port());
-  const HttpReply r = http_post(server.port(), "/act", act_body(5));
-  ASSERT_EQ(r.status, 200) << r.body;
-  EXPECT_EQ(Json::parse(r.body)["actions"].size(), 50u);
-  EXPECT_EQ(server.terminate(), 0);
+  // go exports the model into the Tether cache (keyed by version and precision), verifies it, then serves it.
+  const auto tether_cache = temp_dir("tether_cache");
+  const auto export_dir = tether_cache / "exports" / TETHER_VERSION_STR / "smolvla-demo-fp32";
+  {
+    ServeProcess server({"go", "--model", "smolvla-demo", "--port", "0"}, {"TETHER_CACHE=" + tether_cache.string()});
+    wait_ready(server.port());
+    const HttpReply r = http_post(server.port(), "/act", act_body(5));
+    ASSERT_EQ(r.status, 200) << r.body;
+    EXPECT_EQ(Json::parse(r.body)["actions"].size(), 50u);
+    EXPECT_EQ(server.terminate(), 0);
+  }
+  ASSERT_TRUE(std::filesystem::exists(export_dir / "VERIFICATION.md"));
+  const auto first = std::filesystem::last_write_time(export_dir / "model.safetensors");
+  {  // A second start reuses the export; a stale one (another Tether version) would be rebuilt.
+    ServeProcess again({"go", "--model", "smolvla-demo", "--port", "0"}, {"TETHER_CACHE=" + tether_cache.string()});
+    wait_ready(again.port());
+    EXPECT_EQ(again.terminate(), 0);
+  }
+  EXPECT_EQ(std::filesystem::last_write_time(export_dir / "model.safetensors"), first);
 }
 
 TEST(GoCli, FindsACheckpointInTheHuggingFaceCache) {
@@ -251,7 +265,8 @@ TEST(GoCli, FindsACheckpointInTheHuggingFaceCache) {
   const auto reg = temp_dir("registry") / "registry.json";
   std::ofstream(reg) << R"({"models": {"base": {"family": "smolvla", "hf_repo": "lerobot/smolvla_base", "supported": true}}})";
   ServeProcess server({"go", "--model", "base", "--port", "0"},
-                      {"TETHER_REGISTRY=" + reg.string(), "HF_HOME=" + cache.parent_path().string(), "HF_HUB_CACHE="});
+                      {"TETHER_REGISTRY=" + reg.string(), "HF_HOME=" + cache.parent_path().string(), "HF_HUB_CACHE=",
+                       "TETHER_CACHE=" + temp_dir("go_cache").string()});
   wait_ready(server.port());
   const Json health = Json::parse(http_get(server.port(), "/health").body);
   EXPECT_EQ(health["state"], "ready");
