@@ -17,6 +17,7 @@
 
 #include "backend/cpu/gemm.h"
 #include "cli/commands.h"
+#include "cli/registry.h"
 #include "core/hash.h"
 #include "core/json_util.h"
 #include "core/safetensors.h"
@@ -61,17 +62,6 @@ std::string cpu_model() {
   while (std::getline(in, line))
     if (line.rfind("model name", 0) == 0) return line.substr(line.find(':') + 2);
   return "unknown CPU";
-}
-
-// kB values of /proc/meminfo.
-int64_t meminfo_kb(const std::string& key) {
-  std::ifstream in("/proc/meminfo");
-  std::string name;
-  int64_t value = 0;
-  std::string unit;
-  while (in >> name >> value >> unit)
-    if (name == key + ":") return value;
-  return -1;
 }
 
 std::string gb(double bytes) {
@@ -127,10 +117,10 @@ void cpu_checks(std::vector<Check>& out) {
 }
 
 void memory_checks(std::vector<Check>& out) {
-  const int64_t total = meminfo_kb("MemTotal"), avail = meminfo_kb("MemAvailable");
-  const bool ok = avail > 2 * 1024 * 1024;
+  const int64_t total = meminfo_bytes("MemTotal"), avail = meminfo_bytes("MemAvailable");
+  const bool ok = avail > int64_t(2) * 1024 * 1024 * 1024;
   out.push_back({"memory", "RAM", ok ? Status::ok : Status::warn,
-                 gb(double(avail) * 1024) + " available of " + gb(double(total) * 1024),
+                 gb(double(avail)) + " available of " + gb(double(total)),
                  "a full-size SmolVLA needs about 1.5 GB in float32; close other processes or use a smaller model"});
   for (const auto& [label, dir] :
        {std::pair<std::string, fs::path>{"model cache", [] {
@@ -260,7 +250,7 @@ void model_checks(const std::string& dir, std::vector<Check>& out) {
     int64_t params = 0;
     for (const auto& name : f.names()) params += shape_numel(f.entry(name).shape);
     const double need = double(params) * 4.0 * 1.1;  // float32 weights plus activations
-    const double avail = double(meminfo_kb("MemAvailable")) * 1024.0;
+    const double avail = double(meminfo_bytes("MemAvailable"));
     out.push_back({"model", "weights", Status::ok,
                    count_str(params) + " parameters, " + gb(double(fs::file_size(d / "model.safetensors"))) + " on disk", ""});
     out.push_back({"model", "sha256", Status::ok, "model.safetensors " + sha256_file_hex((d / "model.safetensors").string()),

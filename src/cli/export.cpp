@@ -78,12 +78,7 @@ double export_checkpoint(const std::string& src, const std::string& out_dir, con
   const fs::path out(a.out);
   if (fs::exists(out) && !fs::is_directory(out)) throw Error(ErrorCode::invalid_argument, a.out + ": exists and is not a directory");
   fs::create_directories(out);
-  Json target = nullptr;
-  if (!a.target.empty()) {
-    for (const auto& t : json_get<Json>(read_json_file(data_file("targets.json")), "targets", data_file("targets.json")))
-      if (t.value("id", "") == a.target) target = t;
-    if (target.is_null()) throw Error(ErrorCode::invalid_argument, "--target " + a.target + ": unknown (see tether inspect targets)");
-  }
+  const Json target = a.target.empty() ? Json(nullptr) : deployment_target(a.target);
 
   // Source files and their hashes (the receipt names exactly what was exported).
   std::vector<std::string> names;

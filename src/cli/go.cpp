@@ -21,15 +21,6 @@ namespace fs = std::filesystem;
 
 namespace {
 
-int64_t available_memory_bytes() {
-  std::ifstream in("/proc/meminfo");
-  std::string key, unit;
-  int64_t value = 0;
-  while (in >> key >> value >> unit)
-    if (key == "MemAvailable:") return value * 1024;
-  return 0;
-}
-
 fs::path tether_cache() {
   if (const char* v = std::getenv("TETHER_CACHE"); v && *v) return v;
   const char* home = std::getenv("HOME");
@@ -39,7 +30,7 @@ fs::path tether_cache() {
 // fp32 (the reference) unless asked otherwise or the model would not fit this machine's memory in fp32.
 std::string pick_precision(const RegistryEntry& e, const std::string& asked) {
   if (!asked.empty()) return asked;
-  const int64_t avail = available_memory_bytes();
+  const int64_t avail = meminfo_bytes("MemAvailable");
   if (e.parameters && avail > 0 && memory_needed_bytes(*e.parameters, "fp32") > 0.8 * double(avail)) {
     std::fprintf(stderr, "tether go: %s does not fit in fp32 here (%.1f GB available): using bf16\n", e.id.c_str(),
                  double(avail) / 1e9);

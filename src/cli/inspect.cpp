@@ -4,6 +4,7 @@
 #include <iostream>
 
 #include "cli/commands.h"
+#include "cli/registry.h"
 #include "core/json_util.h"
 #include "core/safetensors.h"
 #include "policy/policy.h"
@@ -25,8 +26,7 @@ struct InspectArgs {
 };
 
 int run_targets(const InspectArgs& a) {
-  const Json j = read_json_file(data_file("targets.json"));
-  const Json& targets = json_get<Json>(j, "targets", data_file("targets.json"));
+  const Json targets = deployment_targets();
   if (a.json) {
     std::cout << targets.dump(2) << "\n";
     return kExitOk;

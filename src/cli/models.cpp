@@ -57,14 +57,13 @@ Json fit_on_target(const RegistryEntry& e, const Json& target) {
   return out;
 }
 
-Json entry_json(const RegistryEntry& e) {
+Json entry_json(const RegistryEntry& e, const Json& all_targets) {
   Json disk = Json::object();
   if (e.parameters)
     for (const char* p : {"fp32", "bf16", "fp16"}) disk[p] = size_str(double(*e.parameters) * (std::string(p) == "fp32" ? 4 : 2));
   const auto local = local_checkpoint(e);
   Json targets = Json::array();
-  for (const auto& t : json_get<Json>(read_json_file(data_file("targets.json")), "targets", data_file("targets.json")))
-    targets.push_back(fit_on_target(e, t));
+  for (const auto& t : all_targets) targets.push_back(fit_on_target(e, t));
   return {{"id", e.id},
           {"family", e.family},
           {"hf_repo", e.hf_repo.empty() ? Json(nullptr) : Json(e.hf_repo)},
@@ -84,14 +83,8 @@ struct ModelsArgs {
 
 int run_info(const ModelsArgs& a) {
   const Registry reg = Registry::load();
-  Json info = entry_json(reg.get(a.id));
-  if (!a.target.empty()) {
-    Json picked;
-    for (const auto& t : info["targets"])
-      if (t["target"] == a.target) picked = t;
-    if (picked.is_null()) throw Error(ErrorCode::invalid_argument, "--target " + a.target + ": unknown (see tether inspect targets)");
-    info["targets"] = Json::array({picked});
-  }
+  const Json info = entry_json(reg.get(a.id), a.target.empty() ? deployment_targets()
+                                                                 : Json::array({deployment_target(a.target)}));
   if (a.json) {
     std::cout << info.dump(2) << "\n";
     return kExitOk;
@@ -114,7 +107,8 @@ int run_info(const ModelsArgs& a) {
 int list_models(const Registry& reg, bool json) {
   if (json) {
     Json arr = Json::array();
-    for (const auto& e : reg.entries()) arr.push_back(entry_json(e));
+    const Json targets = deployment_targets();
+    for (const auto& e : reg.entries()) arr.push_back(entry_json(e, targets));
     std::cout << arr.dump(2) << "\n";
     return kExitOk;
   }

@@ -3,6 +3,9 @@
 #include <algorithm>
 #include <cstdlib>
 #include <filesystem>
+#include <fstream>
+
+#include "cli/commands.h"
 
 #include "hub/hub_client.h"
 #include "models/model.h"
@@ -61,6 +64,26 @@ std::optional<std::string> local_checkpoint(const RegistryEntry& entry) {
   if (!entry.bundled_dir.empty())
     return fs::is_directory(entry.bundled_dir) ? std::optional<std::string>(entry.bundled_dir) : std::nullopt;
   return hub::HubClient::from_env().cached_snapshot(entry.hf_repo);
+}
+
+Json deployment_targets() {
+  const std::string path = data_file("targets.json");
+  return json_get<Json>(read_json_file(path), "targets", path);
+}
+
+Json deployment_target(const std::string& id) {
+  for (const auto& t : deployment_targets())
+    if (t.value("id", "") == id) return t;
+  throw Error(ErrorCode::invalid_argument, "--target " + id + ": unknown (see tether inspect targets)");
+}
+
+int64_t meminfo_bytes(const std::string& key) {
+  std::ifstream in("/proc/meminfo");
+  std::string name, unit;
+  int64_t value = 0;
+  while (in >> name >> value >> unit)
+    if (name == key + ":") return value * 1024;
+  return -1;
 }
 
 double memory_needed_bytes(int64_t parameters, const std::string& precision) {

@@ -55,6 +55,14 @@ double export_checkpoint(const std::string& src, const std::string& out, const s
 // Prints the registry as a table (or JSON): id, family, source, parameters, support, local presence, license.
 int list_models(const Registry& reg, bool json);
 
+// The deployment profiles of models/targets.json (`tether inspect targets`), and one of them by id (an
+// invalid_argument error naming the flag when unknown).
+Json deployment_targets();
+Json deployment_target(const std::string& id);
+
+// A /proc/meminfo field in bytes ("MemAvailable", "MemTotal"); -1 when absent.
+int64_t meminfo_bytes(const std::string& key);
+
 // Approximate memory to run `parameters` weights at `precision` ("fp32", "bf16", "fp16"), activations included.
 double memory_needed_bytes(int64_t parameters, const std::string& precision);
 
