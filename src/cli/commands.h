@@ -24,6 +24,7 @@ Verb add_inspect(CLI::App& app);
 Verb add_models(CLI::App& app);
 Verb add_export(CLI::App& app);
 Verb add_validate(CLI::App& app);
+Verb add_traces(CLI::App& app);
 
 // Path of a data file shipped with Tether (models/targets.json, ...); TETHER_DATA_DIR overrides the directory.
 std::string data_file(const std::string& name);

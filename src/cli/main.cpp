@@ -22,6 +22,7 @@ int main(int argc, char** argv) {
       tether::cli::add_models(app),
       tether::cli::add_export(app),
       tether::cli::add_validate(app),
+      tether::cli::add_traces(app),
   };
   try {
     app.parse(argc, argv);
