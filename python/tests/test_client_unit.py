@@ -17,6 +17,8 @@ import pytest
 from conftest import ACT_OK, Reply, error_reply
 from tether_client import (
     AuthenticationError,
+    CircuitOpenError,
+    DeadlineExceededError,
     InvalidRequestError,
     ReflexClient,
     RequestTimeoutError,
@@ -312,6 +314,7 @@ def test_wait_until_ready_polls_health(fake):
         (413, "body_too_large", InvalidRequestError),
         (431, "header_too_large", InvalidRequestError),
         (500, "inference_failed", ServerError),
+        (504, "deadline_exceeded", DeadlineExceededError),
     ],
 )
 def test_error_statuses_map_to_exceptions(fake, status, code, cls):
@@ -466,3 +469,39 @@ def test_non_object_json_answer_is_reported(fake):
             with pytest.raises(TetherError) as info:
                 client.health()
             assert info.value.code == "bad_response" and info.value.status == 200
+
+
+# -- safety wedges --------------------------------------------------------------------------------------------
+
+
+def test_rtc_fields_are_sent_and_wedge_fields_parsed(fake):
+    body = dict(ACT_OK, action_source="last_good", deadline_exceeded=True, guard_clamped=True,
+                guard_violations=[{"step": 0, "joint": "gripper", "limit": "velocity", "value": 9.0, "applied": 1.0}])
+    fake.script = [Reply(200, body)]
+    with fast_client(fake.url) as client:
+        result = client.act(state=STATE, instruction="x", prev_actions=np.zeros((3, 6)), inference_delay=2)
+    assert fake.requests[0].json()["rtc"] == {"prev_actions": [[0.0] * 6] * 3, "inference_delay": 2}
+    assert result.deadline_exceeded and result.guard_clamped and result.action_source == "last_good"
+    assert result.wedges["guard_violations"][0]["joint"] == "gripper"
+    assert "actions" not in result.wedges and "latency_ms" not in result.wedges
+
+
+def test_rtc_arguments_are_checked_before_sending(fake):
+    with fast_client(fake.url) as client:
+        with pytest.raises(ValueError):
+            client.act(state=STATE, instruction="x", prev_actions=[1.0, 2.0])
+        with pytest.raises(ValueError):
+            client.act(state=STATE, instruction="x", inference_delay=2)
+        with pytest.raises(ValueError):
+            client.act(state=STATE, instruction="x", prev_actions=[[float("nan")] * 6])
+    assert fake.requests == []
+
+
+def test_open_circuit_is_not_waited_out(fake):
+    fake.default = error_reply(503, "circuit_open", "open", headers={"Retry-After": "60"})
+    with fast_client(fake.url, max_retry_wait=5) as client:
+        start = time.monotonic()
+        with pytest.raises(CircuitOpenError) as info:
+            client.act(state=STATE, instruction="x")
+    assert time.monotonic() - start < 2 and info.value.retry_after == 60
+    assert isinstance(info.value, ServerBusyError)

@@ -5,6 +5,8 @@ __version__ = "0.1.0"
 from .client import ActResult, Episode, ReflexClient, TetherClient  # noqa: E402
 from .errors import (  # noqa: E402
     AuthenticationError,
+    CircuitOpenError,
+    DeadlineExceededError,
     InvalidRequestError,
     RequestTimeoutError,
     ServerBusyError,
@@ -18,6 +20,8 @@ from .images import encode_image  # noqa: E402
 __all__ = [
     "ActResult",
     "AuthenticationError",
+    "CircuitOpenError",
+    "DeadlineExceededError",
     "Episode",
     "InvalidRequestError",
     "ReflexClient",

@@ -22,6 +22,8 @@ import numpy as np
 from . import __version__
 from .errors import (
     AuthenticationError,
+    CircuitOpenError,
+    DeadlineExceededError,
     InvalidRequestError,
     RequestTimeoutError,
     ServerBusyError,
@@ -33,6 +35,9 @@ from .errors import (
 from .images import ImageLike, encode_image
 
 REQUEST_ID_HEADER = "X-Tether-Request-ID"
+# Fields every /act answer has; the others come from the safety wedges the server runs.
+_CORE_ACT_FIELDS = frozenset({"actions", "num_actions", "action_dim", "latency_ms", "inference_mode", "model_hash",
+                              "request_id", "episode_id", "batch_size", "warnings"})
 
 
 @dataclass(frozen=True)
@@ -50,6 +55,9 @@ class ActResult:
         model_hash: ``"sha256:<hex>"`` of the served ``model.safetensors``.
         inference_mode: ``{"backend", "precision", "gemm"}``.
         round_trip_ms: wall time of the HTTP exchange seen by the client (retries included).
+        wedges: what the server's safety wedges did, for those enabled (``action_source``, ``guard_clamped``,
+            ``guard_violations``, ``deadline_exceeded``, ``denoise_steps_used``, ``action_skipped``,
+            ``fallback_used``, ``circuit_state``, ``injected_latency_ms``, ``rtc_applied``, ``joint_names``...).
         raw: the decoded JSON body, as received.
     """
 
@@ -62,7 +70,21 @@ class ActResult:
     model_hash: str
     inference_mode: Dict[str, str]
     round_trip_ms: float
-    raw: Dict[str, Any] = field(repr=False)
+    wedges: Dict[str, Any] = field(default_factory=dict)
+    raw: Dict[str, Any] = field(repr=False, default_factory=dict)
+
+    @property
+    def deadline_exceeded(self) -> bool:
+        return bool(self.wedges.get("deadline_exceeded", False))
+
+    @property
+    def guard_clamped(self) -> bool:
+        return bool(self.wedges.get("guard_clamped", False))
+
+    @property
+    def action_source(self) -> str:
+        """``model``, ``cache`` (similarity skip), ``last_good`` (deadline miss) or ``fallback``."""
+        return str(self.wedges.get("action_source", "model"))
 
     @property
     def num_actions(self) -> int:
@@ -317,6 +339,10 @@ class TetherClient:
             raise AuthenticationError(message, **kwargs)
         if status == 408:
             raise RequestTimeoutError(message, **kwargs)
+        if status == 504 and code == "deadline_exceeded":
+            raise DeadlineExceededError(message, **kwargs)
+        if status == 503 and code == "circuit_open":
+            raise CircuitOpenError(message, retry_after=_parse_retry_after(response.header("Retry-After")), **kwargs)
         if status == 503:
             raise ServerBusyError(message, retry_after=_parse_retry_after(response.header("Retry-After")), **kwargs)
         if 400 <= status < 500:
@@ -350,6 +376,8 @@ class TetherClient:
         seed: Optional[int] = None,
         episode_id: Optional[str] = None,
         request_id: Optional[str] = None,
+        prev_actions: Optional[Union[Sequence[Sequence[float]], np.ndarray]] = None,
+        inference_delay: Optional[int] = None,
     ) -> ActResult:
         """Runs the policy on one observation and returns its action chunk.
 
@@ -364,6 +392,10 @@ class TetherClient:
             seed: noise seed (int >= 0); the same seed and inputs give the same actions.
             episode_id: sent as is; defaults to the id of the enclosing :meth:`episode` block, if any.
             request_id: sent as ``X-Tether-Request-ID`` (1..128 chars of ``[A-Za-z0-9._:-]``).
+            prev_actions: real-time chunking (server started with ``--rtc``): the previous chunk's actions not yet
+                executed, ``[n, action_dim]`` in robot units; the new chunk is guided to continue them.
+            inference_delay: real-time chunking: how many of ``prev_actions`` will still run while this request is
+                computed (they are followed exactly, the rest with decaying weight).
 
         Raises:
             ValueError / TypeError: invalid arguments, detected before anything is sent.
@@ -391,6 +423,18 @@ class TetherClient:
             episode_id = getattr(self._local, "episode_id", None)
         if episode_id is not None:
             payload["episode_id"] = str(episode_id)
+        if prev_actions is not None:
+            prev = np.asarray(prev_actions, dtype=np.float64)
+            if prev.ndim != 2 or prev.shape[0] == 0 or not np.all(np.isfinite(prev)):
+                raise ValueError(f"prev_actions must be a finite [n, action_dim] array, got shape {prev.shape}")
+            rtc: Dict[str, Any] = {"prev_actions": prev.tolist()}
+            if inference_delay is not None:
+                if isinstance(inference_delay, bool) or not isinstance(inference_delay, numbers.Integral) or inference_delay < 0:
+                    raise ValueError(f"inference_delay must be an int >= 0, got {inference_delay!r}")
+                rtc["inference_delay"] = int(inference_delay)
+            payload["rtc"] = rtc
+        elif inference_delay is not None:
+            raise ValueError("inference_delay needs prev_actions")
         headers = {"Content-Type": "application/json"}
         if request_id is not None:
             headers[REQUEST_ID_HEADER] = request_id
@@ -419,6 +463,7 @@ class TetherClient:
                 model_hash=str(data.get("model_hash", "")),
                 inference_mode=dict(data.get("inference_mode", {})),
                 round_trip_ms=round_trip_ms,
+                wedges={k: v for k, v in data.items() if k not in _CORE_ACT_FIELDS},
                 raw=data,
             )
         except (KeyError, TypeError, ValueError) as e:

@@ -67,6 +67,16 @@ class ServerBusyError(TetherError):
         self.retry_after = retry_after
 
 
+class CircuitOpenError(ServerBusyError):
+    """503 ``circuit_open``: local inference failed ``--max-consecutive-crashes`` times in a row and the server
+    refuses /act until a probe succeeds; ``retry_after`` says when the next probe is let through."""
+
+
+class DeadlineExceededError(RequestTimeoutError):
+    """504 ``deadline_exceeded``: inference missed ``--deadline-ms`` and the episode had no earlier chunk (and no
+    fallback) to answer with. Hold the robot and retry."""
+
+
 class ServerError(TetherError):
     """5xx other than 503, e.g. 500 ``inference_failed``. The server keeps serving other requests."""
 

@@ -3,6 +3,7 @@
 
 #include <algorithm>
 #include <chrono>
+#include <cmath>
 #include <cstdio>
 #include <iostream>
 #include <numeric>
@@ -25,6 +26,7 @@ struct BenchArgs {
   int iterations = 100, warmup = 5, batch = 1;
   bool json = false;
   std::string out;
+  double adaptive_threshold = -1;  // < 0: no adaptive comparison
 };
 
 double peak_rss_mb() {
@@ -41,9 +43,52 @@ double percentile(std::vector<double> v, double p) {
   return v[lo] + (v[hi] - v[lo]) * (rank - double(lo));
 }
 
+double mean_of(const std::vector<double>& v) { return std::accumulate(v.begin(), v.end(), 0.0) / double(v.size()); }
+
+// Every step against adaptive steps on the same seeded observations (seed, seed + 1, ... per item and iteration),
+// interleaved so that load on the machine hits both alike: steps used, latency of each, and how far the adaptive
+// actions land from the full-step ones.
+Json compare_adaptive(policy::Policy& policy, const policy::Observation& obs, const BenchArgs& a) {
+  std::vector<double> full_ms, adaptive_ms, full_denoise, adaptive_denoise, steps;
+  double max_diff = 0, max_action = 0;
+  for (int i = 0; i < a.warmup + a.iterations; ++i) {
+    std::vector<policy::Observation> batch(std::size_t(a.batch), obs);
+    for (int j = 0; j < a.batch; ++j) batch[j].seed = obs.seed + uint64_t(i) * uint64_t(a.batch) + uint64_t(j);
+    const policy::Prediction full = policy.predict(batch);
+    for (auto& o : batch) o.adaptive_threshold = float(a.adaptive_threshold);
+    const policy::Prediction fast = policy.predict(batch);
+    if (i < a.warmup) continue;
+    full_ms.push_back(full.total_ms);
+    adaptive_ms.push_back(fast.total_ms);
+    full_denoise.push_back(full.timings.denoise_ms);
+    adaptive_denoise.push_back(fast.timings.denoise_ms);
+    for (std::size_t j = 0; j < fast.items.size(); ++j) {
+      steps.push_back(fast.items[j].denoise_steps_used);
+      const auto& x = full.items[j].actions;
+      const auto& y = fast.items[j].actions;
+      for (std::size_t k = 0; k < x.size(); ++k) {
+        max_diff = std::max(max_diff, double(std::fabs(x[k] - y[k])));
+        max_action = std::max(max_action, double(std::fabs(x[k])));
+      }
+    }
+  }
+  return {{"threshold", a.adaptive_threshold},
+          {"num_steps", policy.spec().num_steps},
+          {"steps_used",
+           {{"mean", mean_of(steps)},
+            {"min", *std::min_element(steps.begin(), steps.end())},
+            {"max", *std::max_element(steps.begin(), steps.end())}}},
+          {"latency_ms", {{"full", mean_of(full_ms)}, {"adaptive", mean_of(adaptive_ms)}}},
+          {"denoise_ms", {{"full", mean_of(full_denoise)}, {"adaptive", mean_of(adaptive_denoise)}}},
+          {"max_abs_diff", max_diff},
+          {"max_abs_action", max_action}};
+}
+
 int run_bench(const BenchArgs& a) {
   if (a.iterations < 1 || a.warmup < 0 || a.batch < 1)
     throw Error(ErrorCode::invalid_argument, "--iterations and --batch must be >= 1, --warmup >= 0");
+  if (!std::isfinite(a.adaptive_threshold))
+    throw Error(ErrorCode::invalid_argument, "--adaptive-threshold must be a finite number >= 0");
   const auto t0 = std::chrono::steady_clock::now();
   auto policy = policy::Policy::load(a.checkpoint, load_options(a.precision));
   const double load_ms = std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - t0).count();
@@ -64,7 +109,7 @@ int run_bench(const BenchArgs& a) {
     post.push_back(last.postprocess_ms);
   }
   const double wall_s = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
-  auto mean = [](const std::vector<double>& v) { return std::accumulate(v.begin(), v.end(), 0.0) / double(v.size()); };
+  const auto& mean = mean_of;
 
   if (!a.out.empty()) {
     const auto& spec = policy->spec();
@@ -72,7 +117,7 @@ int run_bench(const BenchArgs& a) {
     for (const auto& item : last.items) all.insert(all.end(), item.actions.begin(), item.actions.end());
     write_safetensors(a.out, {{"actions", Tensor::from_f32({int64_t(a.batch), spec.chunk_size, spec.action_dim}, all)}});
   }
-  const Json report = {
+  Json report = {
       {"checkpoint", a.checkpoint},
       {"family", policy->spec().family},
       {"inference_mode", inference_mode(policy->spec())},
@@ -94,6 +139,7 @@ int run_bench(const BenchArgs& a) {
       {"blas", cpu::blas_name()},
       {"threads", cpu::blas_threads()},
   };
+  if (a.adaptive_threshold >= 0) report["adaptive"] = compare_adaptive(*policy, obs, a);
   if (a.json) {
     std::cout << report.dump(2) << "\n";
     return kExitOk;
@@ -108,6 +154,17 @@ int run_bench(const BenchArgs& a) {
               mean(vision), mean(prefix), mean(denoise), mean(post));
   std::printf("  throughput   %.2f chunks/s\n  peak RSS     %.1f MB\n  load         %.1f ms\n",
               report["throughput_per_s"].get<double>(), peak_rss_mb(), load_ms);
+  if (report.contains("adaptive")) {
+    const Json& r = report["adaptive"];
+    std::printf("  adaptive     threshold %g: steps used mean %.2f min %d max %d (of %lld)\n", a.adaptive_threshold,
+                r["steps_used"]["mean"].get<double>(), int(r["steps_used"]["min"].get<double>()),
+                int(r["steps_used"]["max"].get<double>()), static_cast<long long>(policy->spec().num_steps));
+    std::printf("               latency ms all steps %.2f, adaptive %.2f (denoise %.2f -> %.2f)\n",
+                r["latency_ms"]["full"].get<double>(), r["latency_ms"]["adaptive"].get<double>(),
+                r["denoise_ms"]["full"].get<double>(), r["denoise_ms"]["adaptive"].get<double>());
+    std::printf("               max |diff| vs all steps %.4g (robot units; max |action| %.4g)\n",
+                r["max_abs_diff"].get<double>(), r["max_abs_action"].get<double>());
+  }
   return kExitOk;
 }
 
@@ -122,6 +179,10 @@ Verb add_bench(CLI::App& app) {
   sub->add_option("--batch", args->batch, "Observations per forward pass")->capture_default_str();
   sub->add_flag("--json", args->json, "Print JSON");
   sub->add_option("--out", args->out, "Write the last action chunk(s) to this safetensors file ('actions')");
+  sub->add_option("--adaptive-threshold", args->adaptive_threshold,
+                  "Also run the same seeded observations (--seed, --seed + 1, ...) with every denoise step and with "
+                  "adaptive steps at this threshold; report steps used, both latencies and the max |diff|")
+      ->check(CLI::NonNegativeNumber);
   args->observation.add_to(sub, /*required=*/false);
   add_precision_flag(sub, args->precision);
   return {sub, [args] { return run_bench(*args); }};

@@ -10,10 +10,12 @@
 
 #include "cli/commands.h"
 #include "cli/registry.h"
+#include "cli/serve_flags.h"
 #include "cli/verify.h"
 #include "core/hash.h"
 #include "core/safetensors.h"
 #include "models/backbone.h"
+#include "policy/embodiment.h"
 
 namespace tether::cli {
 
@@ -22,7 +24,7 @@ namespace fs = std::filesystem;
 namespace {
 
 struct ExportArgs {
-  std::string source, out, precision = "fp32", target;
+  std::string source, out, precision = "fp32", target, embodiment, custom_embodiment;
 };
 
 // The source as a directory: a checkpoint directory, or a registry id whose checkpoint is on disk.
@@ -73,11 +75,13 @@ std::string table(const std::vector<CaseDiff>& diffs) {
 }  // namespace
 
 double export_checkpoint(const std::string& src, const std::string& out_dir, const std::string& precision,
-                         const std::string& target_id) {
-  const ExportArgs a{src, out_dir, precision, target_id};
+                         const std::string& target_id, const std::string& embodiment_file) {
+  const ExportArgs a{src, out_dir, precision, target_id, "", ""};
+  // Validated before anything is written; its joint count is checked against the model once it is loaded.
+  const std::optional<policy::Embodiment> embodiment =
+      embodiment_file.empty() ? std::nullopt : std::optional(policy::load_embodiment_file(embodiment_file));
   const fs::path out(a.out);
   if (fs::exists(out) && !fs::is_directory(out)) throw Error(ErrorCode::invalid_argument, a.out + ": exists and is not a directory");
-  fs::create_directories(out);
   const Json target = a.target.empty() ? Json(nullptr) : deployment_target(a.target);
 
   // Source files and their hashes (the receipt names exactly what was exported).
@@ -98,7 +102,14 @@ double export_checkpoint(const std::string& src, const std::string& out_dir, con
   Json config = read_json_file((fs::path(src) / "config.json").string());
   const fs::path backbone = models::find_backbone_dir(src, json_get<std::string>(config, "vlm_model_name", src + "/config.json"));
 
+  auto reference = policy::Policy::load(src);
+  if (embodiment && int64_t(embodiment->joints.size()) != reference->spec().action_dim)
+    throw Error(ErrorCode::invalid_argument, "embodiment '" + embodiment->name + "' has " +
+                                                 std::to_string(embodiment->joints.size()) + " joints, the model outputs " +
+                                                 std::to_string(reference->spec().action_dim) + " action values");
+
   // Write the deployment directory.
+  fs::create_directories(out);
   for (const auto& name : copied) fs::copy_file(fs::path(src) / name, out / name, fs::copy_options::overwrite_existing);
   fs::create_directories(out / "vlm");
   for (const auto& name : models::backbone_files(backbone))
@@ -106,9 +117,10 @@ double export_checkpoint(const std::string& src, const std::string& out_dir, con
   config["vlm_model_name"] = "vlm";  // the backbone travels with the export
   std::ofstream(out / "config.json", std::ios::binary | std::ios::trunc) << config.dump(4) << "\n";
   convert_weights((fs::path(src) / "model.safetensors").string(), (out / "model.safetensors").string(), a.precision);
+  if (embodiment) fs::copy_file(embodiment_file, out / kExportEmbodimentFile, fs::copy_options::overwrite_existing);
+  else fs::remove(out / kExportEmbodimentFile);
 
   // Measure the export against the fp32 source (and upstream, when the source is an oracle fixture).
-  auto reference = policy::Policy::load(src);
   auto exported = policy::Policy::load(out.string());
   const std::vector<CaseDiff> seeded = compare_seeded(*reference, *exported, 4);
   const std::vector<CaseDiff> oracle = compare_with_oracle(src, *exported);
@@ -127,6 +139,7 @@ double export_checkpoint(const std::string& src, const std::string& out_dir, con
                          {"source", {{"path", fs::absolute(src).lexically_normal().string()}, {"files", source_files}}},
                          {"precision", a.precision},
                          {"target", target},
+                         {"embodiment", embodiment ? Json(embodiment->name) : Json(nullptr)},
                          {"files", files},
                          {"verification", diffs}};
   std::ofstream(out / "tether_export.json", std::ios::binary | std::ios::trunc) << manifest.dump(2) << "\n";
@@ -134,7 +147,9 @@ double export_checkpoint(const std::string& src, const std::string& out_dir, con
   std::ostringstream md;
   md << "# Verification receipt\n\n"
      << "Exported by Tether " << TETHER_VERSION << " (`tether export`), precision **" << a.precision << "**"
-     << (target.is_null() ? std::string() : ", target **" + a.target + "**") << ".\n\n"
+     << (target.is_null() ? std::string() : ", target **" + a.target + "**")
+     << (embodiment ? ", embodiment **" + embodiment->name + "** (`" + kExportEmbodimentFile + "`, used by `tether serve`)" : "")
+     << ".\n\n"
      << "## Source\n\n`" << fs::absolute(src).lexically_normal().string() << "`\n\n| file | sha256 |\n|---|---|\n";
   for (auto it = source_files.begin(); it != source_files.end(); ++it) md << "| " << it.key() << " | " << it->get<std::string>() << " |\n";
   md << "\nBackbone files copied from `" << backbone.string() << "` into `vlm/`.\n\n## Output files\n\n| file | sha256 |\n|---|---|\n";
@@ -157,7 +172,12 @@ namespace {
 
 int run_export(const ExportArgs& a) {
   const std::string src = resolve_source(a.source);
-  const double worst = export_checkpoint(src, a.out, a.precision, a.target);
+  if (!a.embodiment.empty() && !a.custom_embodiment.empty())
+    throw Error(ErrorCode::invalid_argument, "give --embodiment or --custom-embodiment-config, not both");
+  const std::string embodiment = !a.custom_embodiment.empty() ? a.custom_embodiment
+                                 : a.embodiment.empty()       ? std::string()
+                                                              : embodiment_preset_file(a.embodiment);
+  const double worst = export_checkpoint(src, a.out, a.precision, a.target, embodiment);
   std::printf("exported %s -> %s (%s); max |diff| against the source %.3e; receipt: %s\n", src.c_str(), a.out.c_str(),
               a.precision.c_str(), worst, (fs::path(a.out) / "VERIFICATION.md").string().c_str());
   return kExitOk;
@@ -174,6 +194,8 @@ Verb add_export(CLI::App& app) {
       ->check(CLI::IsMember({"fp32", "bf16", "fp16"}))
       ->capture_default_str();
   sub->add_option("--target", args->target, "Deployment target (see tether inspect targets), recorded in the receipt");
+  sub->add_option("--embodiment", args->embodiment, "Embodiment preset the export carries (franka, so100, ur5, quadcopter)");
+  sub->add_option("--custom-embodiment-config", args->custom_embodiment, "Embodiment JSON file the export carries");
   return {sub, [args] { return run_export(*args); }};
 }
 

@@ -48,9 +48,9 @@ std::optional<std::string> local_checkpoint(const RegistryEntry& entry);
 std::string pull_model(const RegistryEntry& entry, const std::string& revision = "main");
 
 // Writes a deployment directory for checkpoint `src` into `out` (see `tether export`); returns the largest measured
-// max |diff| against the fp32 source.
+// max |diff| against the fp32 source. `embodiment_file`: an embodiment JSON (preset or custom) travelling with it.
 double export_checkpoint(const std::string& src, const std::string& out, const std::string& precision,
-                         const std::string& target);
+                         const std::string& target, const std::string& embodiment_file = "");
 
 // Prints the registry as a table (or JSON): id, family, source, parameters, support, local presence, license.
 int list_models(const Registry& reg, bool json);

@@ -16,15 +16,17 @@ namespace tether::cli {
 
 namespace {
 
+std::string read_key_file(const std::string& path, const char* flag) {
+  std::ifstream in(path, std::ios::binary);
+  if (!in) throw Error(ErrorCode::not_found, std::string(flag) + " " + path + ": cannot read");
+  std::string key((std::istreambuf_iterator<char>(in)), {});
+  while (!key.empty() && std::isspace(static_cast<unsigned char>(key.back()))) key.pop_back();
+  if (key.empty()) throw Error(ErrorCode::invalid_argument, std::string(flag) + " " + path + ": the file is empty");
+  return key;
+}
+
 std::string read_api_key(const ServeFlags& flags) {
-  if (!flags.api_key_file.empty()) {
-    std::ifstream in(flags.api_key_file, std::ios::binary);
-    if (!in) throw Error(ErrorCode::not_found, "--api-key-file " + flags.api_key_file + ": cannot read");
-    std::string key((std::istreambuf_iterator<char>(in)), {});
-    while (!key.empty() && std::isspace(static_cast<unsigned char>(key.back()))) key.pop_back();
-    if (key.empty()) throw Error(ErrorCode::invalid_argument, "--api-key-file " + flags.api_key_file + ": the file is empty");
-    return key;
-  }
+  if (!flags.api_key_file.empty()) return read_key_file(flags.api_key_file, "--api-key-file");
   const char* env = std::getenv("TETHER_API_KEY");
   return env ? std::string(env) : std::string();
 }
@@ -58,6 +60,118 @@ void add_serve_flags(CLI::App* sub, ServeFlags& f) {
   sub->add_option("--threads", o.threads, "I/O threads (inference has its own)")->capture_default_str()
       ->check(CLI::Range(1, 256));
   add_precision_flag(sub, f.precision);
+
+  // Safety wedges (off unless given; order and semantics in the README).
+  auto& w = o.wedges;
+  const std::string wedges = "Safety wedges";
+  sub->add_option("--embodiment", f.embodiment, "Embodiment preset: franka, so100, ur5, quadcopter (joint limits, rate)")
+      ->group(wedges);
+  sub->add_option("--custom-embodiment-config", f.custom_embodiment, "Embodiment JSON file (same format as the presets)")
+      ->group(wedges);
+  sub->add_option("--safety-config", f.safety_config,
+                  "Joint limits JSON (ros2_control JointLimits fields); overrides the embodiment's per joint")
+      ->group(wedges);
+  sub->add_option("--audit-log", w.audit_log,
+                  "JSON-lines file every guard clamp is appended to (default: audit.jsonl in --record DIR, else "
+                  "./tether-audit.jsonl)")
+      ->group(wedges);
+  sub->add_option("--control-rate-hz", w.control_rate_hz,
+                  "Control rate for elapsed-step arithmetic (default: the embodiment's, else 30)")
+      ->group(wedges)->check(CLI::Range(0.0, 100000.0));
+  sub->add_option("--deadline-ms", w.deadline_ms,
+                  "Answer by this time after receipt; a late model is replaced by the last good chunk")
+      ->group(wedges)->check(CLI::Range(0.0, 3600000.0));
+  sub->add_flag("--adaptive-steps", f.adaptive_steps, "Stop denoising once the velocity stops changing")->group(wedges);
+  sub->add_option("--adaptive-threshold", w.adaptive_threshold,
+                  "Relative velocity change under which --adaptive-steps stops")
+      ->group(wedges)->capture_default_str()->check(CLI::Range(0.0, 10.0));
+  sub->add_option("--action-similarity-threshold", w.similarity_threshold,
+                  "Reuse the cached chunk when the observation moved less than this (see README)")
+      ->group(wedges)->check(CLI::Range(0.0, 1e9));
+  sub->add_option("--max-similar-skips", w.max_similar_skips, "At most this many reuses in a row")
+      ->group(wedges)->check(CLI::Range(0, 1000000));
+  sub->add_option("--max-consecutive-crashes", w.max_consecutive_crashes,
+                  "Open the circuit after this many inference failures in a row (0: never)")
+      ->group(wedges)->check(CLI::Range(0, 1000000));
+  sub->add_option("--circuit-reset-ms", w.circuit_reset_ms, "How long an open circuit waits before a probe")
+      ->group(wedges)->capture_default_str()->check(CLI::Range(1, 86400000));
+  sub->add_option("--cloud-fallback", w.cloud_fallback,
+                  "URL of another Tether server whose /act answers when local inference fails or is late")
+      ->group(wedges);
+  sub->add_option("--fallback-timeout-ms", w.fallback_timeout_ms, "Limit on one fallback call")
+      ->group(wedges)->capture_default_str()->check(CLI::Range(1, 600000));
+  sub->add_option("--fallback-api-key-file", f.fallback_api_key_file,
+                  "API key for the fallback server (else env TETHER_FALLBACK_API_KEY)")
+      ->group(wedges);
+  sub->add_option("--inject-latency-ms", w.inject_latency_ms, "Synthetic delay added to every forward pass (testing)")
+      ->group(wedges)->check(CLI::Range(0.0, 600000.0));
+  sub->add_option("--inject-failure-file", w.inject_failure_file,
+                  "While this file exists every forward pass fails (rehearse the breaker and fallback)")
+      ->group(wedges);
+  sub->add_flag("--rtc", w.rtc, "Accept real-time chunking inputs (rtc.prev_actions, rtc.inference_delay)")
+      ->group(wedges);
+  sub->add_option("--rtc-execution-horizon", w.rtc_execution_horizon, "RTC: steps of the leftover that guide")
+      ->group(wedges)->capture_default_str()->check(CLI::Range(1, 100000));
+  sub->add_option("--rtc-max-guidance-weight", w.rtc_max_guidance_weight, "RTC: cap on the guidance weight")
+      ->group(wedges)->capture_default_str()->check(CLI::Range(0.0, 1e6));
+  sub->add_option("--rtc-schedule", f.rtc_schedule, "RTC prefix weights: linear, exp, ones, zeros")
+      ->group(wedges)->capture_default_str()->check(CLI::IsMember({"linear", "exp", "ones", "zeros"}));
+  sub->add_option("--record", f.record_dir, "Append every /act request and response to hash-chained JSONL traces here")
+      ->group(wedges);
+  sub->add_option("--record-max-bytes", f.record_max_bytes, "Rotate trace files at this size")
+      ->group(wedges)->capture_default_str()->check(CLI::Range(std::uint64_t(4096), std::uint64_t(1) << 40));
+  sub->add_option("--record-images", f.record_images, "hash (sha256 of the pixels) or full (the pixels, replayable)")
+      ->group(wedges)->capture_default_str()->check(CLI::IsMember({"hash", "full"}));
+  sub->add_option("--record-fsync", f.record_fsync, "every_line, interval (each second) or never")
+      ->group(wedges)->capture_default_str()->check(CLI::IsMember({"every_line", "interval", "never"}));
+  sub->add_option("--max-episodes", w.max_episodes, "Episodes kept in memory (least recently used forgotten)")
+      ->group(wedges)->capture_default_str()->check(CLI::Range(std::size_t(1), std::size_t(1) << 24));
+}
+
+
+std::string embodiment_preset_file(const std::string& name) {
+  const std::string dir = data_file("embodiments");
+  policy::load_embodiment_preset(name, dir);
+  return (std::filesystem::path(dir) / (name + ".json")).string();
+}
+
+runtime::WedgeOptions wedge_options(const ServeFlags& f, const std::string& checkpoint_dir) {
+  runtime::WedgeOptions w = f.options.wedges;
+  if (!f.embodiment.empty() && !f.custom_embodiment.empty())
+    throw Error(ErrorCode::invalid_argument, "give --embodiment or --custom-embodiment-config, not both");
+  if (!f.embodiment.empty()) w.embodiment = policy::load_embodiment_preset(f.embodiment, data_file("embodiments"));
+  if (!f.custom_embodiment.empty()) w.embodiment = policy::load_embodiment_file(f.custom_embodiment);
+  const auto carried = std::filesystem::path(checkpoint_dir) / kExportEmbodimentFile;
+  if (!w.embodiment && std::filesystem::is_regular_file(carried)) {
+    w.embodiment = policy::load_embodiment_file(carried.string());
+    std::fprintf(stderr, "tether serve: embodiment '%s' from %s\n", w.embodiment->name.c_str(), carried.c_str());
+  }
+  if (!f.safety_config.empty()) w.safety = policy::load_safety_config(f.safety_config);
+  if (!f.adaptive_steps) w.adaptive_threshold = 0;
+  if ((w.similarity_threshold > 0) != (w.max_similar_skips > 0))
+    throw Error(ErrorCode::invalid_argument,
+                "--action-similarity-threshold and --max-similar-skips work together: give both (> 0)");
+  if (!w.cloud_fallback.empty()) {
+    if (w.cloud_fallback.rfind("http://", 0) != 0 && w.cloud_fallback.rfind("https://", 0) != 0)
+      throw Error(ErrorCode::invalid_argument, "--cloud-fallback " + w.cloud_fallback + ": expected an http:// or https:// URL");
+    if (!f.fallback_api_key_file.empty()) w.fallback_api_key = read_key_file(f.fallback_api_key_file, "--fallback-api-key-file");
+    else if (const char* env = std::getenv("TETHER_FALLBACK_API_KEY")) w.fallback_api_key = env;
+  }
+  w.rtc_schedule = models::parse_rtc_schedule(f.rtc_schedule, "--rtc-schedule");
+  if (!f.record_dir.empty()) {
+    runtime::TraceOptions t;
+    t.dir = f.record_dir;
+    t.max_file_bytes = f.record_max_bytes;
+    t.fsync = f.record_fsync == "every_line" ? runtime::TraceOptions::Fsync::every_line
+              : f.record_fsync == "never" ? runtime::TraceOptions::Fsync::never
+                                          : runtime::TraceOptions::Fsync::interval;
+    w.record = t;
+    w.record_images_full = f.record_images == "full";
+  }
+  if (w.audit_log.empty() && (w.embodiment || w.safety))
+    w.audit_log = f.record_dir.empty() ? "tether-audit.jsonl"
+                                       : (std::filesystem::path(f.record_dir) / "audit.jsonl").string();
+  return w;
 }
 
 int run_server(const std::string& checkpoint_dir, const ServeFlags& flags) {
@@ -66,6 +180,7 @@ int run_server(const std::string& checkpoint_dir, const ServeFlags& flags) {
     throw Error(ErrorCode::not_found, checkpoint_dir + ": not a checkpoint directory");
   serve::ServerOptions options = flags.options;
   options.api_key = read_api_key(flags);
+  options.wedges = wedge_options(flags, checkpoint_dir);
   const models::LoadOptions load = load_options(flags.precision);
   serve::Server server(options, [checkpoint_dir, load] { return serve::load_policy_engine(checkpoint_dir, load); });
   const uint16_t port = server.start();

@@ -13,9 +13,22 @@ struct ServeFlags {
   serve::ServerOptions options;
   std::string api_key_file;
   std::string precision = "fp32";
+  // Wedge flags that name files or choices; run_server turns them into options.wedges before the socket is bound, so
+  // a bad file is an error at start-up.
+  std::string embodiment, custom_embodiment, safety_config, fallback_api_key_file, rtc_schedule = "linear";
+  bool adaptive_steps = false;
+  std::string record_dir, record_images = "hash", record_fsync = "interval";
+  std::uint64_t record_max_bytes = 64ull << 20;
 };
 
 void add_serve_flags(CLI::App* sub, ServeFlags& flags);
+// The embodiment file an export carries; `tether serve` on such a directory uses it unless a flag names another.
+inline constexpr const char* kExportEmbodimentFile = "embodiment.json";
+// Path of the preset models/embodiments/<name>.json after validating it (not_found listing the presets otherwise).
+std::string embodiment_preset_file(const std::string& name);
+// Loads the embodiment / safety / key files the wedge flags name (or the checkpoint's own embodiment.json); throws
+// tether::Error naming the flag or field.
+runtime::WedgeOptions wedge_options(const ServeFlags& flags, const std::string& checkpoint_dir);
 // Resolves the API key (file, else TETHER_API_KEY), binds, prints the listening line, serves until SIGTERM/SIGINT.
 int run_server(const std::string& checkpoint_dir, const ServeFlags& flags);
 

@@ -1,4 +1,4 @@
-// A small blocking HTTP client over libcurl for the hub: no automatic redirects (the caller decides
+// A small blocking HTTP client over libcurl for the hub (and the server's cloud fallback): no automatic redirects (the caller decides
 // where credentials may go), headers kept verbatim, bodies either buffered or streamed to a sink.
 #pragma once
 
@@ -41,11 +41,13 @@ struct HttpResult {
 };
 
 struct HttpRequest {
-  std::string method = "GET";  // GET or HEAD
+  std::string method = "GET";  // GET, HEAD or POST (with `body`)
   std::string url;
   std::vector<std::string> headers;  // "Name: value"
   long connect_timeout_s = 10;
   long timeout_s = 0;        // whole request; 0 = unlimited (downloads), used for metadata calls
+  long timeout_ms = 0;       // whole request in milliseconds, when set (overrides timeout_s and connect_timeout_s)
+  std::string body;          // POST only
   long stall_timeout_s = 0;  // abort when under 1 byte/s for this long; 0 = never
   // Receives the body as it arrives; the response's status and headers are already filled in.
   // Returning false aborts the transfer.

@@ -12,6 +12,7 @@
 #include "backend/cpu/packed_linear.h"
 #include "core/json_util.h"
 #include "core/tensor.h"
+#include "models/flow_matching.h"
 #include "vision/image.h"
 
 namespace tether::models {
@@ -23,6 +24,7 @@ struct ModelInput {
   std::string instruction;
   std::vector<float> noise;  // [chunk_size, max_action_dim]; empty -> drawn from `seed`
   uint64_t seed = 0;
+  DenoiseControl denoise;  // adaptive steps, RTC guidance; default: plain Euler over every step
 };
 
 struct StageTimings {
@@ -33,6 +35,7 @@ struct ModelOutput {
   int64_t batch = 0, chunk_size = 0, action_dim = 0;
   std::vector<float> actions;                       // [batch, chunk_size, action_dim], normalised
   std::vector<std::vector<std::string>> warnings;  // per item
+  std::vector<int> steps_used;                      // per item: denoise steps run (num_steps unless it stopped early)
   StageTimings timings;
 };
 

@@ -12,6 +12,7 @@
 #include "backend/cpu/gemm.h"
 #include "backend/cpu/kernels.h"
 #include "models/backbone.h"
+#include "models/flow_matching.h"
 #include "models/llama_decoder.h"
 #include "models/siglip.h"
 #include "text/tokenizer.h"
@@ -77,7 +78,7 @@ class SmolVLA final : public Model {
  private:
   void build_prefix(const std::vector<ModelInput>& batch, ModelOutput& out);
   void run_prefix();
-  void denoise_step(float time);
+  void denoise_step(const float* x, float time, float* v);
   void ensure_buffers(int64_t batch, int64_t prefix_len);
 
   ModelSpec spec_;
@@ -484,8 +485,9 @@ void SmolVLA::run_prefix() {
   }
 }
 
-// One Euler step's velocity: embeds x_t with the time, runs the expert against the cached prefix, writes v_t_.
-void SmolVLA::denoise_step(float time) {
+// One Euler step's velocity: embeds x ([B, chunk, max_action_dim]) with the time, runs the expert against the cached
+// prefix, writes the velocity to v (same layout).
+void SmolVLA::denoise_step(const float* x_t, float time, float* v) {
   const int64_t B = B_, Lp = Lp_, C = spec_.chunk_size, E = expert_hidden_;
   const int64_t H = text_cfg_.heads, KvH = text_cfg_.kv_heads, hd = text_cfg_.head_dim;
   const int64_t q_dim = H * hd, kv_dim = KvH * hd, qkv_dim = q_dim + 2 * kv_dim, rows = B * C;
@@ -503,7 +505,7 @@ void SmolVLA::denoise_step(float time) {
     time_emb_[half + i] = float(std::cos(angle));
   }
   // [action_in(x_t), time] -> mlp_in -> silu -> mlp_out.
-  action_in_.forward(x_t_.data(), rows, cat_.data(), false, /*ldy=*/2 * E);
+  action_in_.forward(x_t, rows, cat_.data(), false, /*ldy=*/2 * E);
   for (int64_t r = 0; r < rows; ++r) std::memcpy(&cat_[r * 2 * E + E], time_emb_.data(), std::size_t(E) * sizeof(float));
   time_in_.forward(cat_.data(), rows, mlp_h_.data());
   silu(mlp_h_.data(), rows * E);
@@ -541,7 +543,7 @@ void SmolVLA::denoise_step(float time) {
     X.finish(attn_.data(), rows, text_cfg_.rms_norm_eps, x, scratch_);
   }
   rms_norm(x, rows, E, expert_norm_, text_cfg_.rms_norm_eps, normed_.data());
-  action_out_.forward(normed_.data(), rows, v_t_.data());
+  action_out_.forward(normed_.data(), rows, v);
 }
 
 ModelOutput SmolVLA::predict(const std::vector<ModelInput>& batch) {
@@ -574,14 +576,15 @@ ModelOutput SmolVLA::predict(const std::vector<ModelInput>& batch) {
     if (batch[b].noise.empty()) seeded_normal(batch[b].seed, dst, C * A);
     else std::copy(batch[b].noise.begin(), batch[b].noise.end(), dst);
   }
-  // Forward Euler from t=1 (noise) to t=0: the step and times follow upstream's float64 -> float32 rounding.
-  const double dt = -1.0 / double(spec_.num_steps);
-  const float dt32 = float(dt);
-  for (int64_t step = 0; step < spec_.num_steps; ++step) {
-    denoise_step(float(1.0 + double(step) * dt));
-    if (step == 0 && dumping()) dump("mid.velocity.step0", Tensor{DType::f32, {B, C, A}, v_t_.data(), nullptr});
-    for (std::size_t i = 0; i < x_t_.size(); ++i) x_t_[i] += dt32 * v_t_[i];
-  }
+  // Forward Euler from the noise (t=1) to the actions (t=0), per-item controls (flow_matching.h).
+  std::vector<DenoiseControl> controls;
+  controls.reserve(batch.size());
+  for (const auto& item : batch) controls.push_back(item.denoise);
+  std::function<void(const float*)> on_step0;
+  if (dumping())
+    on_step0 = [&](const float* v) { dump("mid.velocity.step0", Tensor{DType::f32, {B, C, A}, v, nullptr}); };
+  out.steps_used = euler_sample(x_t_.data(), v_t_.data(), {B, C, A, spec_.action_dim}, spec_.num_steps, controls,
+                                [this](const float* x, float time, float* v) { denoise_step(x, time, v); }, on_step0);
   out.timings.denoise_ms = ms_since(t3);
 
   out.actions.resize(std::size_t(B * C * spec_.action_dim));

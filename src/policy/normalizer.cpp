@@ -100,7 +100,7 @@ Normalizer Normalizer::load(const std::string& dir, const std::string& pipeline_
   return n;
 }
 
-void Normalizer::apply(const std::string& key, float* x, int64_t n, bool inverse) const {
+void Normalizer::apply(const std::string& key, float* x, int64_t n, Direction direction) const {
   auto it = features_.find(key);
   if (it == features_.end() || it->second.mode == NormMode::identity || !it->second.has_stats) return;
   const FeatureNorm& f = it->second;
@@ -110,13 +110,15 @@ void Normalizer::apply(const std::string& key, float* x, int64_t n, bool inverse
     throw Error(ErrorCode::invalid_argument, key + ": " + std::to_string(n) + " values do not match the stats width " +
                                                  std::to_string(width));
   // Float32 arithmetic in the same operation order as upstream so results match to the last bit.
+  const bool inverse = direction == Direction::unnormalize;
   for (int64_t i = 0; i < n; ++i) {
     const std::size_t j = std::size_t(i) % width;
     float& v = x[i];
     switch (f.mode) {
       case NormMode::mean_std: {
         const float mean = stat("mean")[j], std = stat("std")[j];
-        v = inverse ? v * std + mean : (v - mean) / (std + eps_);
+        if (direction == Direction::invert_unnormalize) v = std == 0.f ? 0.f : (v - mean) / std;
+        else v = inverse ? v * std + mean : (v - mean) / (std + eps_);
         break;
       }
       case NormMode::min_max: {

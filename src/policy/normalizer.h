@@ -29,15 +29,21 @@ class Normalizer {
   static Normalizer load(const std::string& dir, const std::string& pipeline_json, const std::string& step_name,
                          const Json& policy_config, std::vector<std::string>& warnings);
 
-  void normalize(const std::string& key, float* x, int64_t n) const { apply(key, x, n, false); }
-  void unnormalize(const std::string& key, float* x, int64_t n) const { apply(key, x, n, true); }
+  void normalize(const std::string& key, float* x, int64_t n) const { apply(key, x, n, Direction::normalize); }
+  void unnormalize(const std::string& key, float* x, int64_t n) const { apply(key, x, n, Direction::unnormalize); }
+  // The inverse of unnormalize: maps robot units back to what the model emitted. Differs from normalize only for
+  // MEAN_STD, which divides by std + eps; a zero std (every model output maps to the mean) gives 0.
+  void invert_unnormalize(const std::string& key, float* x, int64_t n) const {
+    apply(key, x, n, Direction::invert_unnormalize);
+  }
   const std::map<std::string, FeatureNorm>& features() const { return features_; }
   // One line per feature: "observation.state: MEAN_STD (stats present)".
   std::vector<std::string> describe() const;
 
  private:
+  enum class Direction { normalize, unnormalize, invert_unnormalize };
   // x holds n values, a whole number of rows of the feature's width.
-  void apply(const std::string& key, float* x, int64_t n, bool inverse) const;
+  void apply(const std::string& key, float* x, int64_t n, Direction direction) const;
   std::map<std::string, FeatureNorm> features_;
   float eps_ = 1e-8f;
 };

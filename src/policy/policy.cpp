@@ -9,6 +9,46 @@ namespace tether::policy {
 
 namespace fs = std::filesystem;
 
+namespace {
+
+// The model-side denoise control of one observation. RTC's leftover goes back to the model's normalised space (the
+// inverse of the output unnormalisation), zero-padded to [chunk, max_action_dim], with lerobot's prefix weights
+// (execution horizon capped to the leftover length, as upstream does).
+models::DenoiseControl denoise_control(const Observation& o, const models::ModelSpec& s, const Normalizer& post) {
+  auto fail = [](const std::string& message) { throw Error(ErrorCode::invalid_argument, message); };
+  models::DenoiseControl c;
+  if (!std::isfinite(o.adaptive_threshold) || o.adaptive_threshold < 0)
+    fail("adaptive_threshold must be a finite number >= 0, got " + std::to_string(o.adaptive_threshold));
+  c.adaptive_threshold = o.adaptive_threshold;
+  if (!o.rtc) return c;
+  const Observation::Rtc& r = *o.rtc;
+  const int64_t A = s.action_dim, C = s.chunk_size, values = int64_t(r.prev_actions.size());
+  const int64_t n = values / A;
+  if (values == 0 || values % A != 0 || n > C)
+    fail("rtc.prev_actions has " + std::to_string(values) + " values; expected n x " + std::to_string(A) +
+         " (n rows of action_dim values, 1 <= n <= chunk_size " + std::to_string(C) + ")");
+  for (float v : r.prev_actions)
+    if (!std::isfinite(v)) fail("rtc.prev_actions contains NaN or Inf");
+  if (r.inference_delay < 0 || r.inference_delay >= C)
+    fail("rtc.inference_delay must be in [0, " + std::to_string(C) + "), got " + std::to_string(r.inference_delay));
+  if (r.execution_horizon < 1)
+    fail("rtc.execution_horizon must be >= 1, got " + std::to_string(r.execution_horizon));
+  if (!std::isfinite(r.max_guidance_weight) || r.max_guidance_weight <= 0)
+    fail("rtc.max_guidance_weight must be a finite number > 0, got " + std::to_string(r.max_guidance_weight));
+
+  std::vector<float> prev = r.prev_actions;
+  post.invert_unnormalize(s.action_key, prev.data(), values);
+  c.rtc_target.assign(std::size_t(C * s.max_action_dim), 0.0f);
+  for (int64_t i = 0; i < n; ++i)
+    std::copy_n(&prev[std::size_t(i * A)], A, &c.rtc_target[std::size_t(i * s.max_action_dim)]);
+  c.rtc_weights = models::rtc_prefix_weights(r.inference_delay, int(std::min<int64_t>(r.execution_horizon, n)), int(C),
+                                             r.schedule);
+  c.rtc_max_guidance_weight = r.max_guidance_weight;
+  return c;
+}
+
+}  // namespace
+
 std::unique_ptr<Policy> Policy::load(const std::string& checkpoint_dir, const models::LoadOptions& options) {
   if (!fs::is_directory(checkpoint_dir))
     throw Error(ErrorCode::not_found, checkpoint_dir + ": not a checkpoint directory");
@@ -68,6 +108,7 @@ Prediction Policy::predict(const std::vector<Observation>& batch) {
     in.instruction = o.instruction;
     in.noise = o.noise;
     in.seed = o.seed;
+    in.denoise = denoise_control(o, s, post_);
   }
   Prediction out;
   out.normalize_ms = std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - t0).count();
@@ -86,6 +127,7 @@ Prediction Policy::predict(const std::vector<Observation>& batch) {
     chunk.actions.assign(m.actions.begin() + b * per_item, m.actions.begin() + (b + 1) * per_item);
     post_.unnormalize(s.action_key, chunk.actions.data(), per_item);
     chunk.warnings = m.warnings[b];
+    chunk.denoise_steps_used = m.steps_used.empty() ? 0 : m.steps_used[b];
     out.items.push_back(std::move(chunk));
   }
   const auto t2 = std::chrono::steady_clock::now();

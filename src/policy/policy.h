@@ -2,6 +2,7 @@
 #pragma once
 
 #include <memory>
+#include <optional>
 #include <string>
 #include <vector>
 
@@ -17,6 +18,16 @@ struct Observation {
   std::string instruction;
   std::vector<float> noise;  // optional explicit noise [chunk_size, max_action_dim]; empty -> from `seed`
   uint64_t seed = 0;
+  float adaptive_threshold = 0;  // > 0: stop denoising early (see models::DenoiseControl)
+  // Real-time chunking: guide the new chunk towards what is still queued from the previous one.
+  struct Rtc {
+    std::vector<float> prev_actions;  // leftover of the previous chunk, robot units, [n, action_dim], 1 <= n <= chunk
+    int inference_delay = 0;          // actions that run while this chunk is computed, in [0, chunk)
+    int execution_horizon = 10;       // >= 1; capped to n
+    float max_guidance_weight = 10;
+    models::RtcSchedule schedule = models::RtcSchedule::linear;
+  };
+  std::optional<Rtc> rtc;
 };
 
 // A stand-in observation for warm-ups and benchmarks: a mid-grey frame for every real camera at the model's input
@@ -27,6 +38,7 @@ struct ActionChunk {
   int64_t chunk_size = 0, action_dim = 0;
   std::vector<float> actions;  // [chunk_size, action_dim], robot units
   std::vector<std::string> warnings;
+  int denoise_steps_used = 0;
 };
 
 struct Prediction {
@@ -44,6 +56,7 @@ class Policy {
   // Things the user should know about the checkpoint (missing stats, ...), one sentence each.
   const std::vector<std::string>& load_warnings() const { return warnings_; }
   const Normalizer& input_normalizer() const { return pre_; }
+  const Normalizer& output_normalizer() const { return post_; }
 
   Prediction predict(const std::vector<Observation>& batch);
   // Named intermediates of the model, plus "out.actions_normalized" before unnormalisation.

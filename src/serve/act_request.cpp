@@ -135,18 +135,50 @@ J parse_json(std::string_view body) {
   }
 }
 
+RtcFields parse_rtc(const J& rtc, const models::ModelSpec& spec) {
+  if (!rtc.is_object()) fail("invalid_field", "rtc: expected an object {prev_actions, inference_delay}, got " + type_name(rtc));
+  for (auto it = rtc.begin(); it != rtc.end(); ++it)
+    if (it.key() != "prev_actions" && it.key() != "inference_delay")
+      fail("unknown_field", "rtc: unknown field '" + it.key() + "' (accepted: prev_actions, inference_delay)");
+  RtcFields out;
+  const auto prev = rtc.find("prev_actions");
+  if (prev == rtc.end() || !prev->is_array() || prev->empty() || int64_t(prev->size()) > spec.chunk_size)
+    fail("invalid_field", "rtc.prev_actions: expected 1 to " + std::to_string(spec.chunk_size) + " rows of " +
+                              std::to_string(spec.action_dim) + " numbers (the previous chunk's actions not yet executed)");
+  out.rows = int64_t(prev->size());
+  out.prev_actions.reserve(std::size_t(out.rows * spec.action_dim));
+  for (std::size_t r = 0; r < prev->size(); ++r) {
+    const J& row = (*prev)[r];
+    const std::string where = "rtc.prev_actions[" + std::to_string(r) + "]";
+    if (!row.is_array() || int64_t(row.size()) != spec.action_dim)
+      fail("invalid_field", where + ": expected " + std::to_string(spec.action_dim) + " numbers");
+    for (std::size_t c = 0; c < row.size(); ++c) {
+      const float v = row[c].is_number() ? float(row[c].get<double>()) : NAN;
+      if (!std::isfinite(v)) fail("invalid_field", where + "[" + std::to_string(c) + "]: expected a finite number");
+      out.prev_actions.push_back(v);
+    }
+  }
+  const auto delay = rtc.find("inference_delay");
+  if (delay != rtc.end() && !delay->is_null()) {
+    if (!delay->is_number_integer() || delay->get<int64_t>() < 0 || delay->get<int64_t>() >= spec.chunk_size)
+      fail("invalid_field", "rtc.inference_delay: expected an integer in [0, " + std::to_string(spec.chunk_size) + ")");
+    out.inference_delay = int(delay->get<int64_t>());
+  }
+  return out;
+}
+
 }  // namespace
 
 ActRequest parse_act_request(std::string_view body, const models::ModelSpec& spec) {
   const J j = parse_json(body);
   if (!j.is_object()) fail("bad_json", "the body must be a JSON object, got " + type_name(j));
 
-  static const char* const kKnown[] = {"instruction", "state", "images", "image", "episode_id", "seed"};
+  static const char* const kKnown[] = {"instruction", "state", "images", "image", "episode_id", "seed", "rtc"};
   for (auto it = j.begin(); it != j.end(); ++it) {
     bool known = false;
     for (const char* k : kKnown) known = known || it.key() == k;
     if (!known)
-      fail("unknown_field", "unknown field '" + it.key() + "' (accepted: instruction, state, images, image, episode_id, seed)");
+      fail("unknown_field", "unknown field '" + it.key() + "' (accepted: instruction, state, images, image, episode_id, seed, rtc)");
   }
 
   ActRequest req;
@@ -200,6 +232,8 @@ ActRequest parse_act_request(std::string_view body, const models::ModelSpec& spe
     if (!episode->is_string()) fail("invalid_field", "episode_id: expected a string, got " + type_name(*episode));
     req.episode_id = episode->get<std::string>();
   }
+  const auto rtc = j.find("rtc");
+  if (rtc != j.end() && !rtc->is_null()) req.rtc = parse_rtc(*rtc, spec);
   const auto seed = j.find("seed");
   if (seed != j.end() && !seed->is_null()) {
     if (!seed->is_number_integer() || (seed->is_number_integer() && !seed->is_number_unsigned() && seed->get<int64_t>() < 0))

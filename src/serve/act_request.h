@@ -12,11 +12,21 @@
 
 namespace tether::serve {
 
+// Real-time chunking inputs: the previous chunk's actions not yet executed (robot units) and how many of them will
+// still run while this request is computed.
+struct RtcFields {
+  std::vector<float> prev_actions;  // [rows, action_dim]
+  int64_t rows = 0;
+  int inference_delay = 0;
+};
+
 struct ActRequest {
   policy::Observation observation;      // images keyed by the checkpoint's camera names
   std::optional<uint64_t> seed;         // absent: the server derives one from the request id
   std::optional<std::string> episode_id;
+  std::optional<RtcFields> rtc;
 };
+
 
 // Deepest JSON nesting accepted: the schema needs 4; the cap keeps hostile input from exhausting the stack.
 inline constexpr int kMaxJsonDepth = 16;

@@ -19,6 +19,19 @@ Engine load_policy_engine(const std::string& checkpoint_dir, const models::LoadO
   e.precision = cpu::precision_name(p->spec().precision);
   const auto weights = std::filesystem::path(checkpoint_dir) / "model.safetensors";
   e.model_hash = "sha256:" + sha256_file_hex(weights.string());
+  e.model_name = std::filesystem::path(checkpoint_dir).lexically_normal().filename().string();
+  if (e.model_name.empty()) e.model_name = std::filesystem::path(checkpoint_dir).lexically_normal().parent_path().filename().string();
+  const std::string state_key = p->spec().state_key;
+  e.normalize_state = [p, state_key](const std::vector<float>& state) {
+    std::vector<float> out = state;
+    p->input_normalizer().normalize(state_key, out.data(), int64_t(out.size()));
+    return out;
+  };
+  const auto& post = p->output_normalizer().features();
+  const auto action = post.find(p->spec().action_key);
+  // Trained on normalised actions but shipped without the stats to undo it (identity-mode actions are robot units).
+  e.actions_normalized = action != post.end() && action->second.mode != policy::NormMode::identity &&
+                         !action->second.has_stats;
   e.predict = [p](const std::vector<policy::Observation>& batch) { return p->predict(batch); };
   return e;
 }

@@ -2,6 +2,7 @@
 // it. A Policy is one implementation; tests substitute a fake without touching the HTTP layer.
 #pragma once
 
+#include <functional>
 #include <string>
 #include <vector>
 
@@ -15,6 +16,11 @@ struct Engine {
   std::string model_hash;           // "sha256:<hex of model.safetensors>"
   std::vector<std::string> normalization;  // one line per feature, for /config
   std::vector<std::string> load_warnings;
+  std::string model_name;  // the checkpoint directory's name, for traces
+  // The state as the model sees it (the similarity skip measures changes in these units); null: identity.
+  std::function<std::vector<float>(const std::vector<float>&)> normalize_state;
+  // True when the checkpoint has no action stats: its output is in the model's normalised range, not robot units.
+  bool actions_normalized = false;
   std::string backend = "cpu", precision = "fp32", gemm;
 };
 

@@ -9,14 +9,17 @@ namespace tether::serve {
 
 class HttpError : public std::runtime_error {
  public:
-  HttpError(int status, std::string code, const std::string& message)
-      : std::runtime_error(message), status_(status), code_(std::move(code)) {}
+  // `retry_after_s`: the Retry-After a 503 carries (1 s unless the cause knows better, e.g. an open circuit).
+  HttpError(int status, std::string code, const std::string& message, int retry_after_s = 1)
+      : std::runtime_error(message), status_(status), code_(std::move(code)), retry_after_s_(retry_after_s) {}
   int status() const { return status_; }
   const std::string& code() const { return code_; }
+  int retry_after_s() const { return retry_after_s_; }
 
  private:
   int status_;
   std::string code_;
+  int retry_after_s_;
 };
 
 }  // namespace tether::serve

@@ -105,6 +105,22 @@ void Metrics::set_gemm(const std::string& gemm) {
   gemm_ = gemm;
 }
 
+void Metrics::add_counter(const std::string& name, const std::string& help, double value, const std::string& labels) {
+  std::lock_guard lock(mu_);
+  Family& f = families_[name];
+  f.help = help;
+  f.type = "counter";
+  f.values[labels] += value;
+}
+
+void Metrics::set_gauge(const std::string& name, const std::string& help, double value, const std::string& labels) {
+  std::lock_guard lock(mu_);
+  Family& f = families_[name];
+  f.help = help;
+  f.type = "gauge";
+  f.values[labels] = value;
+}
+
 std::string Metrics::render() const {
   std::lock_guard lock(mu_);
   std::string out;
@@ -129,6 +145,14 @@ std::string Metrics::render() const {
   out += "# HELP tether_model_ready 1 once the model is loaded and warmed up.\n";
   out += "# TYPE tether_model_ready gauge\n";
   out += std::string("tether_model_ready ") + (model_ready_ ? "1" : "0") + "\n";
+  for (const auto& [name, f] : families_) {
+    out += "# HELP " + name + " " + f.help + "\n# TYPE " + name + " " + f.type + "\n";
+    for (const auto& [labels, v] : f.values) {
+      char num[32];
+      std::snprintf(num, sizeof num, "%.17g", v);
+      out += name + (labels.empty() ? "" : "{" + labels + "}") + " " + num + "\n";
+    }
+  }
   return out;
 }
 

@@ -40,6 +40,10 @@ class Metrics {
   void set_model_ready(bool ready);
   // The GEMM library is known once the model has loaded.
   void set_gemm(const std::string& gemm);
+  // Counters and gauges of the safety wedges and the recorder: `name` is the full metric name, `labels` the label
+  // list without braces (`joint="j1",limit="velocity"`), values kept per label set.
+  void add_counter(const std::string& name, const std::string& help, double value = 1, const std::string& labels = "");
+  void set_gauge(const std::string& name, const std::string& help, double value, const std::string& labels = "");
 
   std::string render() const;
 
@@ -49,6 +53,11 @@ class Metrics {
   std::map<std::pair<std::string, int>, uint64_t> requests_;
   std::map<std::string, Histogram> stages_;
   Histogram batch_sizes_;
+  struct Family {
+    std::string help, type;
+    std::map<std::string, double> values;  // by label list
+  };
+  std::map<std::string, Family> families_;
   int queue_depth_ = 0;
   bool model_ready_ = false;
 };

@@ -3,7 +3,8 @@
 // Error codes beyond the /act body's (see act_request.h): 401 unauthorized, 404 not_found, 405 method_not_allowed,
 // 408 request_timeout, 413 body_too_large, 431 header_too_large (Beast reports header_limit; answered 431, never
 // 400), 400 bad_request (malformed HTTP), 500 inference_failed, 500 internal_error (a bug caught per request),
-// 503 queue_full / not_ready (both with Retry-After: 1). A read that times out closes the connection unanswered:
+// 503 queue_full / not_ready (both with Retry-After: 1), 503 circuit_open (Retry-After: seconds until the half-open
+// probe), 504 deadline_exceeded (--deadline-ms passed with no cached chunk or fallback to answer with). A read that times out closes the connection unanswered:
 // the socket is already shut by then.
 #pragma once
 
@@ -14,6 +15,7 @@
 #include <string>
 
 #include "runtime/batcher.h"
+#include "runtime/wedges.h"
 #include "serve/engine.h"
 
 namespace tether::serve {
@@ -31,10 +33,11 @@ struct ServerOptions {
   int request_timeout_ms = 30000;   // a request still queued after this: 408 request_timeout
   int shutdown_timeout_ms = 10000;  // in-flight requests get this long after SIGTERM/SIGINT
   int threads = 2;                  // I/O threads (inference runs on the batcher's worker)
+  runtime::WedgeOptions wedges;     // safety wedges, episodes and trace recording (all off by default)
 };
 
 // The model's life cycle as /health reports it. `degraded`: the warm-up or the last few forward passes failed.
-enum class HealthState { loading, warming, ready, degraded, failed };
+enum class HealthState { loading, warming, ready, degraded, failed, circuit_open };
 const char* health_state_name(HealthState s);
 
 class Server {

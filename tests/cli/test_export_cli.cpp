@@ -86,3 +86,27 @@ TEST(ExportCli, InitCiAndUsageErrors) {
   EXPECT_EQ(run_tether("export " + kFixture + " -o " + a.string() + " --precision int3").code, 2);
   fs::remove_all(a);
 }
+
+TEST(ExportCli, CarriesAnEmbodimentThatMatchesTheModel) {
+  const fs::path out = fresh("embodiment");
+  const CliRun ok = run_tether("export " + kFixture + " -o " + out.string() + " --embodiment so100");
+  ASSERT_EQ(ok.code, 0) << ok.err;
+  EXPECT_EQ(read(out / "embodiment.json"), read(fs::path(TETHER_SOURCE_DIR) / "models/embodiments/so100.json"));
+  EXPECT_EQ(Json::parse(read(out / "tether_export.json"))["embodiment"], "so100");
+  EXPECT_NE(read(out / "VERIFICATION.md").find("embodiment **so100**"), std::string::npos);
+  EXPECT_NE(read(out / "VERIFICATION.md").find("| embodiment.json |"), std::string::npos);
+  EXPECT_EQ(run_tether("validate export " + out.string()).code, 0);
+
+  // Re-exporting without one leaves no stale embodiment behind.
+  ASSERT_EQ(run_tether("export " + kFixture + " -o " + out.string()).code, 0);
+  EXPECT_FALSE(fs::exists(out / "embodiment.json"));
+
+  // An embodiment whose joints do not match the model's actions is refused.
+  const CliRun bad = run_tether("export " + kFixture + " -o " + fresh("franka").string() + " --embodiment franka");
+  EXPECT_EQ(bad.code, 2);
+  EXPECT_NE(bad.err.find("8 joints"), std::string::npos) << bad.err;
+  const CliRun unknown = run_tether("export " + kFixture + " -o " + fresh("x").string() + " --embodiment no-such-arm");
+  EXPECT_EQ(unknown.code, 2);
+  EXPECT_NE(unknown.err.find("no-such-arm"), std::string::npos) << unknown.err;
+  fs::remove_all(out);
+}

@@ -1,0 +1,194 @@
+// Forward-Euler flow-matching sampler with adaptive step counts and RTC guidance (see flow_matching.h).
+#include "models/flow_matching.h"
+
+#include <algorithm>
+#include <cctype>
+#include <cmath>
+#include <limits>
+#include <numbers>
+
+#include "core/error.h"
+
+namespace tether::models {
+
+namespace {
+
+// torch.nan_to_num with nan=0, posinf given, neginf the lowest finite float.
+float nan_to_num(float x, float posinf) {
+  if (std::isnan(x)) return 0.0f;
+  if (std::isinf(x)) return x > 0 ? posinf : std::numeric_limits<float>::lowest();
+  return x;
+}
+
+// torch.linspace(1, 0, n + 2)[1:-1] for the ramp between start and end, computed the way torch's CPU kernel does
+// (float32 step; the second half counted back from the end).
+std::vector<float> ramp(int start, int end, int total) {
+  const int n = total - std::max(total - end, 0) - start;
+  if (end <= start || n <= 0) return {};
+  const int64_t steps = n + 2, halfway = steps / 2;
+  const float step = (0.0f - 1.0f) / float(steps - 1);
+  std::vector<float> w;
+  for (int64_t i = 1; i + 1 < steps; ++i)
+    w.push_back(i < halfway ? 1.0f + step * float(i) : 0.0f - step * float(steps - i - 1));
+  return w;
+}
+
+void check_control(const DenoiseControl& c, int64_t item, const SampleShape& s) {
+  const std::string where = "denoise control of item " + std::to_string(item) + ": ";
+  if (!std::isfinite(c.adaptive_threshold) || c.adaptive_threshold < 0)
+    throw Error(ErrorCode::invalid_argument, where + "adaptive_threshold must be finite and >= 0");
+  if (c.rtc_target.empty()) return;
+  if (int64_t(c.rtc_target.size()) != s.chunk * s.width)
+    throw Error(ErrorCode::invalid_argument, where + "rtc_target has " + std::to_string(c.rtc_target.size()) +
+                                                 " values, expected " + std::to_string(s.chunk) + "x" +
+                                                 std::to_string(s.width));
+  if (int64_t(c.rtc_weights.size()) != s.chunk)
+    throw Error(ErrorCode::invalid_argument, where + "rtc_weights has " + std::to_string(c.rtc_weights.size()) +
+                                                 " values, expected " + std::to_string(s.chunk));
+  if (!std::isfinite(c.rtc_max_guidance_weight) || c.rtc_max_guidance_weight <= 0)
+    throw Error(ErrorCode::invalid_argument, where + "rtc_max_guidance_weight must be finite and > 0");
+}
+
+// RTC guidance on one item's velocity, in place, with lerobot's float32 arithmetic. The paper's correction is the
+// vector-Jacobian product err^T d(x1)/d(x_t) with x1 = x_t - time * v, i.e. err - time * err^T dv/dx_t. There is no
+// backward pass here, so the Jacobian is taken as the identity (correction = err, the time * dv/dx_t term is
+// dropped). lerobot 0.6.1's RTCProcessor evaluates v before it enables gradients on x_t, so its autograd product
+// reduces to the same identity.
+void apply_rtc(const float* x, float* v, const DenoiseControl& c, double time, const SampleShape& s) {
+  const float t = float(time);
+  const float weight = rtc_guidance_weight(float(1.0 - time), c.rtc_max_guidance_weight);
+  for (int64_t r = 0; r < s.chunk; ++r) {
+    const float w = c.rtc_weights[std::size_t(r)];
+    for (int64_t a = 0; a < s.width; ++a) {
+      const int64_t i = r * s.width + a;
+      const float x1 = x[i] - t * v[i];
+      const float err = (c.rtc_target[std::size_t(i)] - x1) * w;
+      v[i] = v[i] - weight * err;
+    }
+  }
+}
+
+// ||v - prev|| < threshold * ||prev|| over the real action dims (padding dims never reach the output).
+bool converged(const float* v, const float* prev, float threshold, const SampleShape& s) {
+  double diff = 0, norm = 0;
+  for (int64_t r = 0; r < s.chunk; ++r) {
+    for (int64_t a = 0; a < s.action_dim; ++a) {
+      const int64_t i = r * s.width + a;
+      const double d = double(v[i]) - double(prev[i]);
+      diff += d * d;
+      norm += double(prev[i]) * double(prev[i]);
+    }
+  }
+  return std::sqrt(diff) < double(threshold) * std::sqrt(norm);
+}
+
+}  // namespace
+
+const char* rtc_schedule_name(RtcSchedule s) {
+  switch (s) {
+    case RtcSchedule::zeros: return "zeros";
+    case RtcSchedule::ones: return "ones";
+    case RtcSchedule::linear: return "linear";
+    case RtcSchedule::exp: return "exp";
+  }
+  return "?";
+}
+
+RtcSchedule parse_rtc_schedule(const std::string& name, const std::string& field) {
+  std::string lower = name;
+  std::transform(lower.begin(), lower.end(), lower.begin(), [](unsigned char ch) { return char(std::tolower(ch)); });
+  for (RtcSchedule s : {RtcSchedule::zeros, RtcSchedule::ones, RtcSchedule::linear, RtcSchedule::exp})
+    if (lower == rtc_schedule_name(s)) return s;
+  throw Error(ErrorCode::invalid_argument, field + ": '" + name + "' is not one of zeros, ones, linear, exp");
+}
+
+std::vector<float> rtc_prefix_weights(int start, int end, int total, RtcSchedule schedule) {
+  if (total < 1 || start < 0 || end < 0)
+    throw Error(ErrorCode::invalid_argument, "rtc_prefix_weights: needs total >= 1, start >= 0, end >= 0 (got " +
+                                                 std::to_string(start) + ", " + std::to_string(end) + ", " +
+                                                 std::to_string(total) + ")");
+  start = std::min(start, end);
+  std::vector<float> w;
+  switch (schedule) {
+    case RtcSchedule::zeros:
+      w.assign(std::size_t(total), 0.0f);
+      std::fill_n(w.begin(), std::min(start, total), 1.0f);
+      return w;
+    case RtcSchedule::ones:
+      w.assign(std::size_t(total), 1.0f);
+      if (end < total) std::fill(w.begin() + end, w.end(), 0.0f);
+      return w;
+    case RtcSchedule::linear:
+    case RtcSchedule::exp: break;
+  }
+  std::vector<float> r = ramp(start, end, total);
+  if (schedule == RtcSchedule::exp) {
+    const float denom = float(std::numbers::e - 1.0);
+    for (float& x : r) x = x * (std::expm1(x) / denom);
+  }
+  w.assign(std::size_t(std::min(start, total)), 1.0f);
+  w.insert(w.end(), r.begin(), r.end());
+  w.resize(w.size() + std::size_t(std::max(total - end, 0)), 0.0f);
+  return w;
+}
+
+float rtc_guidance_weight(float tau, float max_guidance_weight) {
+  const float one_minus = 1.0f - tau;
+  const float squared = one_minus * one_minus;
+  const float inv_r2 = (squared + tau * tau) / squared;
+  const float c = nan_to_num(one_minus / tau, max_guidance_weight);
+  return std::min(nan_to_num(c * inv_r2, max_guidance_weight), max_guidance_weight);
+}
+
+std::vector<int> euler_sample(float* x, float* v, const SampleShape& s, int64_t num_steps,
+                              const std::vector<DenoiseControl>& controls, const VelocityFn& velocity,
+                              const std::function<void(const float* v)>& on_step0_velocity) {
+  const int64_t B = s.batch, n = s.chunk * s.width;
+  if (num_steps < 1) throw Error(ErrorCode::invalid_argument, "euler_sample: num_steps must be >= 1");
+  if (int64_t(controls.size()) != B)
+    throw Error(ErrorCode::invalid_argument, "euler_sample: " + std::to_string(controls.size()) +
+                                                 " denoise controls for a batch of " + std::to_string(B));
+  bool adaptive = false;
+  for (int64_t b = 0; b < B; ++b) {
+    check_control(controls[b], b, s);
+    adaptive = adaptive || controls[b].adaptive_threshold > 0;
+  }
+  // Everything the loop needs is sized here: the steps themselves never allocate.
+  std::vector<float> prev_v(adaptive ? std::size_t(B * n) : 0);
+  std::vector<int> steps(std::size_t(B), 0);
+  std::vector<uint8_t> done(std::size_t(B), 0);
+  int64_t active = B;
+
+  const double dt = -1.0 / double(num_steps);
+  const float dt32 = float(dt);
+  for (int64_t step = 0; step < num_steps && active > 0; ++step) {
+    const double time = 1.0 + double(step) * dt;
+    velocity(x, float(time), v);
+    if (step == 0 && on_step0_velocity) on_step0_velocity(v);
+    for (int64_t b = 0; b < B; ++b) {
+      if (done[b]) continue;  // frozen: its velocity is computed with the batch but never used
+      const DenoiseControl& c = controls[b];
+      float* xb = x + b * n;
+      float* vb = v + b * n;
+      ++steps[b];
+      if (!c.rtc_target.empty()) apply_rtc(xb, vb, c, time, s);
+      if (c.adaptive_threshold > 0) {
+        float* pb = &prev_v[std::size_t(b * n)];
+        // On the last step a jump is the ordinary step, so the check starts at the second and ends before the last.
+        if (step > 0 && step + 1 < num_steps && converged(vb, pb, c.adaptive_threshold, s)) {
+          // The velocity stopped changing: integrate it as a constant over the remaining time, straight to t=0.
+          const float rest = float(0.0 - time);
+          for (int64_t i = 0; i < n; ++i) xb[i] += rest * vb[i];
+          done[b] = 1;
+          --active;
+          continue;
+        }
+        std::copy(vb, vb + n, pb);
+      }
+      for (int64_t i = 0; i < n; ++i) xb[i] += dt32 * vb[i];
+    }
+  }
+  return steps;
+}
+
+}  // namespace tether::models

@@ -1,0 +1,55 @@
+// The flow-matching sampler shared by the flow-matching families: forward Euler from noise (t=1) to actions (t=0),
+// with per-item adaptive step counts and real-time-chunking (RTC) guidance towards a previous chunk's leftover.
+#pragma once
+
+#include <cstdint>
+#include <functional>
+#include <string>
+#include <vector>
+
+namespace tether::models {
+
+// lerobot's RTCAttentionSchedule: how the guidance weight falls off over the chunk.
+enum class RtcSchedule { zeros, ones, linear, exp };
+const char* rtc_schedule_name(RtcSchedule s);
+// "zeros", "ones", "linear", "exp" (case-insensitive); anything else is invalid_argument naming `field`.
+RtcSchedule parse_rtc_schedule(const std::string& name, const std::string& field = "rtc schedule");
+
+// Per-position guidance weights [total] as lerobot's RTCProcessor.get_prefix_weights builds them: `start` is the
+// inference delay (positions already committed, weight 1), `end` the execution horizon (weight 0 from there on; the
+// caller caps it to the leftover length as upstream does), the schedule decides the ramp in between.
+std::vector<float> rtc_prefix_weights(int start, int end, int total, RtcSchedule schedule);
+
+// lerobot's guidance weight at tau = 1 - time: min(max_w, (1-tau)/tau * ((1-tau)^2 + tau^2) / (1-tau)^2), in float32,
+// with +inf -> max_w and NaN -> 0 as torch.nan_to_num does.
+float rtc_guidance_weight(float tau, float max_guidance_weight);
+
+// How one batch item is denoised. Per item, so an item's result never depends on what it was batched with.
+struct DenoiseControl {
+  // > 0: stop once ||v_k - v_{k-1}|| / ||v_{k-1}|| < threshold (checked from the second step on), finishing with one
+  // Euler jump over the remaining time. 0: every step.
+  float adaptive_threshold = 0;
+  // RTC guidance (empty target: off). Target: the previous chunk's leftover actions in the model's normalised space,
+  // zero-padded to [chunk, width]; weights [chunk] from rtc_prefix_weights().
+  std::vector<float> rtc_target, rtc_weights;
+  float rtc_max_guidance_weight = 10;
+};
+
+struct SampleShape {
+  int64_t batch = 0, chunk = 0, width = 0;  // x and v are [batch, chunk, width]
+  int64_t action_dim = 0;  // the first action_dim of each width values are real actions; the rest is padding
+};
+
+// velocity(x, time, v): the model's velocity for the whole batch at `time`, written to v (same layout as x).
+using VelocityFn = std::function<void(const float* x, float time, float* v)>;
+
+// Forward Euler from x (noise at t=1) to t=0 in `num_steps` steps of dt = -1/num_steps, in place: x += dt * v, with
+// the times and dt rounded from float64 as lerobot does. `v` is the caller's [batch, chunk, width] buffer the velocity
+// is written to. With default controls the arithmetic is exactly that loop and nothing is allocated per step.
+// `on_step0_velocity`, when set, sees the model's first velocity (before any guidance).
+// Returns the velocity evaluations each item used (num_steps unless it stopped early).
+std::vector<int> euler_sample(float* x, float* v, const SampleShape& shape, int64_t num_steps,
+                              const std::vector<DenoiseControl>& controls, const VelocityFn& velocity,
+                              const std::function<void(const float* v)>& on_step0_velocity = {});
+
+}  // namespace tether::models
