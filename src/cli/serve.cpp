@@ -82,9 +82,9 @@ void add_serve_flags(CLI::App* sub, ServeFlags& f) {
                   "Answer by this time after receipt; a late model is replaced by the last good chunk")
       ->group(wedges)->check(CLI::Range(0.0, 3600000.0));
   sub->add_flag("--adaptive-steps", f.adaptive_steps, "Stop denoising once the velocity stops changing")->group(wedges);
-  sub->add_option("--adaptive-threshold", w.adaptive_threshold,
-                  "Relative velocity change under which --adaptive-steps stops")
-      ->group(wedges)->capture_default_str()->check(CLI::Range(0.0, 10.0));
+  sub->add_option("--adaptive-threshold", f.adaptive_threshold,
+                  "Relative velocity change under which --adaptive-steps stops (default 0.05; implies --adaptive-steps)")
+      ->group(wedges)->check(CLI::Range(0.0, 10.0));
   sub->add_option("--action-similarity-threshold", w.similarity_threshold,
                   "Reuse the cached chunk when the observation moved less than this (see README)")
       ->group(wedges)->check(CLI::Range(0.0, 1e9));
@@ -147,7 +147,9 @@ runtime::WedgeOptions wedge_options(const ServeFlags& f, const std::string& chec
     std::fprintf(stderr, "tether serve: embodiment '%s' from %s\n", w.embodiment->name.c_str(), carried.c_str());
   }
   if (!f.safety_config.empty()) w.safety = policy::load_safety_config(f.safety_config);
-  if (!f.adaptive_steps) w.adaptive_threshold = 0;
+  // --adaptive-threshold on its own also turns the wedge on.
+  const bool adaptive = f.adaptive_steps || f.adaptive_threshold >= 0;
+  w.adaptive_threshold = !adaptive ? 0.0f : f.adaptive_threshold >= 0 ? f.adaptive_threshold : kDefaultAdaptiveThreshold;
   if ((w.similarity_threshold > 0) != (w.max_similar_skips > 0))
     throw Error(ErrorCode::invalid_argument,
                 "--action-similarity-threshold and --max-similar-skips work together: give both (> 0)");

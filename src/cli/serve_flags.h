@@ -9,6 +9,9 @@
 
 namespace tether::cli {
 
+// Relative velocity change under which --adaptive-steps stops when no --adaptive-threshold is given.
+inline constexpr float kDefaultAdaptiveThreshold = 0.05f;
+
 struct ServeFlags {
   serve::ServerOptions options;
   std::string api_key_file;
@@ -17,6 +20,7 @@ struct ServeFlags {
   // a bad file is an error at start-up.
   std::string embodiment, custom_embodiment, safety_config, fallback_api_key_file, rtc_schedule = "linear";
   bool adaptive_steps = false;
+  float adaptive_threshold = -1;  // < 0: not given (kDefaultAdaptiveThreshold with --adaptive-steps)
   std::string record_dir, record_images = "hash", record_fsync = "interval";
   std::uint64_t record_max_bytes = 64ull << 20;
 };
