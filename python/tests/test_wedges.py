@@ -196,6 +196,12 @@ def test_adaptive_steps(plain):
         assert metric(metrics_of(loose), "tether_denoise_steps_total") == data["denoise_steps_used"]
     finally:
         assert tight.stop() == 0 and loose.stop() == 0
+    default = ServeProcess(["--adaptive-steps"])
+    try:
+        assert json.loads(request(default.port, "GET", "/config")[2])["wedges"]["adaptive_threshold"] == 0.05
+        assert 2 <= act(default)["denoise_steps_used"] <= 10
+    finally:
+        assert default.stop() == 0
 
 
 # -- similarity skip and episodes ------------------------------------------------------------------------------
