@@ -198,7 +198,7 @@ def test_adaptive_steps(plain):
         assert tight.stop() == 0 and loose.stop() == 0
     default = ServeProcess(["--adaptive-steps"])
     try:
-        assert json.loads(request(default.port, "GET", "/config")[2])["wedges"]["adaptive_threshold"] == 0.05
+        assert json.loads(request(default.port, "GET", "/config")[2])["wedges"]["adaptive_threshold"] == pytest.approx(0.05)
         assert 2 <= act(default)["denoise_steps_used"] <= 10
     finally:
         assert default.stop() == 0
