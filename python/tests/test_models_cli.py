@@ -11,6 +11,8 @@ from serve_process import binary_path
 
 ROOT = Path(__file__).resolve().parents[2]
 FAKE_HUB = ROOT / "tests" / "hub" / "fake_hub.py"
+FIGURE = {"benchmark": "LIBERO-10 / LIBERO-Long", "metric": "success rate (%)", "value": 71, "setting": "fine-tuned on LIBERO-10",
+          "source": {"title": "Tiny's paper", "url": "https://example.org/tiny"}}
 
 
 @pytest.fixture(scope="module")
@@ -27,7 +29,7 @@ def env(tmp_path, fake_hub):
     registry = tmp_path / "registry.json"
     registry.write_text(json.dumps({"models": {
         "tiny": {"family": "smolvla", "hf_repo": "tether-test/tiny", "parameters": 1000000, "supported": True,
-                 "files": ["config.json", "model.safetensors"]},
+                 "files": ["config.json", "model.safetensors"], "figures": [FIGURE]},
         "gated": {"family": "smolvla", "hf_repo": "tether-test/gated", "supported": True},
     }}))
     e = dict(os.environ)
@@ -77,3 +79,47 @@ def test_gated_unknown_and_unreachable_fail_with_one_line(env, tmp_path):
     assert down.returncode == 2 and "HF_HUB_OFFLINE" in down.stderr, down.stderr
     for r in (gated, unknown, down):  # progress lines aside, the failure is one "error:" line
         assert len([line for line in r.stderr.splitlines() if line.startswith("error:")]) == 1, r.stderr
+
+
+def test_figures_in_list_and_info(env):
+    listed = {m["id"]: m for m in json.loads(tether(["models", "list", "--json"], env).stdout)}
+    assert listed["tiny"]["published"] == "LIBERO-10 71%" and listed["tiny"]["figures"] == [FIGURE]
+    assert listed["gated"]["published"] is None and listed["gated"]["figures"] == []
+    table = tether(["models", "list"], env).stdout.splitlines()
+    assert "published" in table[0]
+    assert "LIBERO-10 71%" in next(line for line in table if line.startswith("tiny "))
+    info = tether(["models", "info", "tiny"], env).stdout
+    assert "published    LIBERO-10 / LIBERO-Long: 71% success rate \u2014 fine-tuned on LIBERO-10" in info
+    assert "source: Tiny's paper, https://example.org/tiny" in info
+
+
+def test_shipped_registry_has_the_fluxvla_finetune():
+    shipped = {k: v for k, v in os.environ.items() if k != "TETHER_REGISTRY"}
+    info = json.loads(tether(["models", "info", "pi05-libero10-fluxvla", "--json"], shipped).stdout)
+    assert (info["hf_repo"], info["subfolder"]) == ("limxdynamics/FluxVLAEngine", "pi05_paligemma_libero_10_full_finetune_bs64")
+    assert info["family"] == "pi05" and info["supported"] is False
+    assert info["figures"][0]["benchmark"] == "LIBERO-10 / LIBERO-Long" and info["figures"][0]["value"] == 95.6
+
+
+def test_malformed_figure_names_entry_and_field(env, tmp_path):
+    bad = dict(FIGURE, source={"title": "no address"})
+    registry = tmp_path / "bad.json"
+    registry.write_text(json.dumps({"models": {"tiny": {"family": "smolvla", "hf_repo": "a/b", "figures": [FIGURE, bad]}}}))
+    r = tether(["models", "list"], dict(env, TETHER_REGISTRY=str(registry)))
+    assert r.returncode == 2
+    assert f"{registry}: models.tiny.figures[1].source: missing field 'url'" in r.stderr, r.stderr
+
+
+def test_pull_of_a_subfolder_entry_fetches_only_that_folder(env, tmp_path):
+    registry = tmp_path / "nested.json"
+    registry.write_text(json.dumps({"models": {
+        "nested": {"family": "smolvla", "hf_repo": "tether-test/tiny", "subfolder": "sub/dir"}}}))
+    e = dict(env, TETHER_REGISTRY=str(registry))
+    assert json.loads(tether(["models", "list", "--json"], e).stdout)[0]["local_path"] is None
+    r = tether(["models", "pull", "nested"], e)
+    assert r.returncode == 0, r.stderr
+    folder = Path(r.stdout.strip())
+    assert folder.parts[-2:] == ("sub", "dir") and folder.parents[2].name == "snapshots"
+    assert [p.name for p in folder.iterdir()] == ["notes.txt"]
+    assert not (folder.parents[1] / "model.safetensors").exists()  # the rest of the repo stays on the hub
+    assert json.loads(tether(["models", "list", "--json"], e).stdout)[0]["local_path"] == str(folder)

@@ -1,13 +1,11 @@
 // `tether doctor`: what this machine offers Tether, each check with a one-line remediation when it fails.
 // CUDA libraries are probed with dlopen, so doctor runs (and says so) on machines without them.
-#include <dlfcn.h>
 #include <sys/statvfs.h>
 #include <unistd.h>
 
 #include <cstdio>
 #include <cstdlib>
 #include <filesystem>
-#include <fstream>
 #include <iostream>
 #include <sstream>
 
@@ -17,6 +15,7 @@
 
 #include "backend/cpu/gemm.h"
 #include "cli/commands.h"
+#include "cli/hardware.h"
 #include "cli/registry.h"
 #include "core/hash.h"
 #include "core/json_util.h"
@@ -54,14 +53,6 @@ const char* status_name(Status s) {
     case Status::skip: return "skip";
   }
   return "?";
-}
-
-std::string cpu_model() {
-  std::ifstream in("/proc/cpuinfo");
-  std::string line;
-  while (std::getline(in, line))
-    if (line.rfind("model name", 0) == 0) return line.substr(line.find(':') + 2);
-  return "unknown CPU";
 }
 
 std::string gb(double bytes) {
@@ -142,94 +133,38 @@ void memory_checks(std::vector<Check>& out) {
   }
 }
 
-// Opens the first library of `names` that loads; returns its handle and the name used.
-std::pair<void*, std::string> open_any(std::initializer_list<const char*> names) {
-  for (const char* n : names)
-    if (void* h = dlopen(n, RTLD_NOW | RTLD_LOCAL)) return {h, n};
-  return {nullptr, ""};
-}
-
-std::string version_str(int v, int major_div, int minor_div) {
-  return std::to_string(v / major_div) + "." + std::to_string((v % major_div) / minor_div);
-}
-
-// Compute capabilities the CUDA backend is built for (see ARCHITECTURE: Ampere and newer).
-bool supported_cc(int major, int minor) {
-  const int cc = major * 10 + minor;
-  for (int s : {80, 86, 87, 89, 90, 100, 103, 110, 120, 121})
-    if (cc == s) return true;
-  return false;
-}
-
 void cuda_checks(std::vector<Check>& out) {
-  auto [cuda, cuda_name] = open_any({"libcuda.so.1", "libcuda.so"});
-  if (!cuda) {
+  const GpuProbe gpu = probe_gpus();
+  if (gpu.driver_library.empty()) {
     out.push_back({"cuda", "driver", Status::skip, "no NVIDIA driver (libcuda.so.1 not found): CPU only",
                    "install the NVIDIA driver to use a GPU"});
+  } else if (!gpu.driver_ok) {
+    out.push_back({"cuda", "driver", Status::fail, gpu.driver_library + " loaded but cuInit failed",
+                   "check the driver installation (nvidia-smi) and the device permissions"});
   } else {
-    using InitFn = int (*)(unsigned);
-    using VersionFn = int (*)(int*);
-    using CountFn = int (*)(int*);
-    using DeviceFn = int (*)(int*, int);
-    using AttrFn = int (*)(int*, int, int);
-    using NameFn = int (*)(char*, int, int);
-    auto init = reinterpret_cast<InitFn>(dlsym(cuda, "cuInit"));
-    auto version = reinterpret_cast<VersionFn>(dlsym(cuda, "cuDriverGetVersion"));
-    auto count = reinterpret_cast<CountFn>(dlsym(cuda, "cuDeviceGetCount"));
-    auto device = reinterpret_cast<DeviceFn>(dlsym(cuda, "cuDeviceGet"));
-    auto attr = reinterpret_cast<AttrFn>(dlsym(cuda, "cuDeviceGetAttribute"));
-    auto name = reinterpret_cast<NameFn>(dlsym(cuda, "cuDeviceGetName"));
-    int v = 0, n = 0;
-    if (!init || !version || init(0) != 0 || version(&v) != 0) {
-      out.push_back({"cuda", "driver", Status::fail, cuda_name + " loaded but cuInit failed",
-                     "check the driver installation (nvidia-smi) and the device permissions"});
-    } else {
-      out.push_back({"cuda", "driver", Status::ok, "CUDA driver API " + version_str(v, 1000, 10), ""});
-      if (count && count(&n) == 0) {
-        for (int i = 0; i < n; ++i) {
-          int dev = 0, major = 0, minor = 0;
-          char buf[256] = {0};
-          device(&dev, i);
-          attr(&major, 75, dev);  // CU_DEVICE_ATTRIBUTE_COMPUTE_CAPABILITY_MAJOR
-          attr(&minor, 76, dev);  // ..._MINOR
-          name(buf, sizeof buf, dev);
-          const bool ok = supported_cc(major, minor);
-          out.push_back({"cuda", "GPU " + std::to_string(i), ok ? Status::ok : Status::warn,
-                         std::string(buf) + ", compute capability " + std::to_string(major) + "." + std::to_string(minor),
-                         "this GPU's compute capability is outside the supported table (8.0+); the CPU backend still works"});
-        }
-      }
+    out.push_back({"cuda", "driver", Status::ok, "CUDA driver API " + cuda_version_str(gpu.driver_version), ""});
+    for (std::size_t i = 0; i < gpu.devices.size(); ++i) {
+      const GpuDevice& g = gpu.devices[i];
+      out.push_back({"cuda", "GPU " + std::to_string(i),
+                     supported_compute_capability(g.cc_major, g.cc_minor) ? Status::ok : Status::warn,
+                     g.name + ", compute capability " + std::to_string(g.cc_major) + "." + std::to_string(g.cc_minor) +
+                         (g.memory_bytes > 0 ? ", " + gb(double(g.memory_bytes)) : ""),
+                     "this GPU's compute capability is outside the supported table (8.0+); the CPU backend still works"});
     }
   }
-  auto [rt, rt_name] = open_any({"libcudart.so.13", "libcudart.so.12", "libcudart.so"});
-  if (!rt) {
-    out.push_back({"cuda", "runtime", Status::skip, "libcudart not found", "install the CUDA toolkit runtime (12 or 13)"});
-  } else {
-    using RtVersion = int (*)(int*);
-    auto f = reinterpret_cast<RtVersion>(dlsym(rt, "cudaRuntimeGetVersion"));
-    int v = 0;
-    out.push_back({"cuda", "runtime", f && f(&v) == 0 ? Status::ok : Status::warn,
-                   rt_name + (f && v ? ", CUDA " + version_str(v, 1000, 10) : ""), ""});
-  }
-  auto [blas, blas_lib] = open_any({"libcublas.so.13", "libcublas.so.12", "libcublas.so"});
-  if (!blas) {
-    out.push_back({"cuda", "cuBLAS", Status::skip, "libcublas not found", "install cuBLAS with the CUDA toolkit"});
-  } else {
-    using PropFn = int (*)(int, int*);
-    auto f = reinterpret_cast<PropFn>(dlsym(blas, "cublasGetProperty"));
-    int ma = 0, mi = 0, pa = 0;
-    const bool ok = f && f(0, &ma) == 0 && f(1, &mi) == 0 && f(2, &pa) == 0;
-    out.push_back({"cuda", "cuBLAS", ok ? Status::ok : Status::warn,
-                   blas_lib + (ok ? ", version " + std::to_string(ma) + "." + std::to_string(mi) + "." + std::to_string(pa) : ""), ""});
-  }
-  auto [dnn, dnn_lib] = open_any({"libcudnn.so.9", "libcudnn.so.8", "libcudnn.so"});
-  if (!dnn) {
-    out.push_back({"cuda", "cuDNN", Status::skip, "libcudnn not found", "optional; install cuDNN 9 for the GPU vision kernels"});
-  } else {
-    using DnnVersion = std::size_t (*)();
-    auto f = reinterpret_cast<DnnVersion>(dlsym(dnn, "cudnnGetVersion"));
-    out.push_back({"cuda", "cuDNN", f ? Status::ok : Status::warn, dnn_lib + (f ? ", version " + std::to_string(f()) : ""), ""});
-  }
+  const CudaLibraries libs = probe_cuda_libraries();
+  const auto library_check = [&](const std::string& name, const CudaLibrary& lib, const std::string& soname,
+                                 const std::string& version_prefix, const std::string& remedy) {
+    if (lib.file.empty()) {
+      out.push_back({"cuda", name, Status::skip, soname + " not found", remedy});
+      return;
+    }
+    out.push_back({"cuda", name, lib.version.empty() ? Status::warn : Status::ok,
+                   lib.file + (lib.version.empty() ? "" : ", " + version_prefix + lib.version), ""});
+  };
+  library_check("runtime", libs.runtime, "libcudart", "CUDA ", "install the CUDA toolkit runtime (12 or 13)");
+  library_check("cuBLAS", libs.cublas, "libcublas", "version ", "install cuBLAS with the CUDA toolkit");
+  library_check("cuDNN", libs.cudnn, "libcudnn", "version ", "optional; install cuDNN 9 for the GPU vision kernels");
 }
 
 void model_checks(const std::string& dir, std::vector<Check>& out) {

@@ -1,5 +1,6 @@
-// `tether go --model <id>`: serve a model by its registry name. The id is looked up in models/registry.json, the
-// checkpoint found locally (bundled, or the Hugging Face cache), and served with the same flags as `tether serve`.
+// `tether go --model <id>`: serve a model by its registry name. Probes the machine (CPU, memory, GPU), looks the id up
+// in models/registry.json, finds the checkpoint (bundled, or the Hugging Face cache; pulled when missing), exports it
+// at the chosen precision into the Tether cache and serves it with the same flags as `tether serve`.
 #include <algorithm>
 #include <cctype>
 #include <cstdio>
@@ -9,6 +10,7 @@
 #include <iostream>
 
 #include "cli/commands.h"
+#include "cli/hardware.h"
 #include "cli/serve_flags.h"
 #include "cli/registry.h"
 #include "core/json_util.h"
@@ -25,18 +27,6 @@ fs::path tether_cache() {
   if (const char* v = std::getenv("TETHER_CACHE"); v && *v) return v;
   const char* home = std::getenv("HOME");
   return fs::path(home ? home : "/") / ".cache" / "tether";
-}
-
-// fp32 (the reference) unless asked otherwise or the model would not fit this machine's memory in fp32.
-std::string pick_precision(const RegistryEntry& e, const std::string& asked) {
-  if (!asked.empty()) return asked;
-  const int64_t avail = meminfo_bytes("MemAvailable");
-  if (e.parameters && avail > 0 && memory_needed_bytes(*e.parameters, "fp32") > 0.8 * double(avail)) {
-    std::fprintf(stderr, "tether go: %s does not fit in fp32 here (%.1f GB available): using bf16\n", e.id.c_str(),
-                 double(avail) / 1e9);
-    return "bf16";
-  }
-  return "fp32";
 }
 
 // The export for (model, precision) under the Tether cache, rebuilt when it is missing, made by another Tether
@@ -80,9 +70,16 @@ Verb add_go(CLI::App& app) {
             if (args->list) return list_models(reg, false);
             if (args->model.empty()) throw Error(ErrorCode::invalid_argument, "--model is required (see tether go --list)");
             const RegistryEntry& e = reg.get(args->model);
+            // The probe comes first: what this machine offers decides the precision and where the model runs.
+            const MachineProbe machine = probe_machine();
+            std::fprintf(stderr, "tether go: %s\ntether go: %s\n", cpu_summary(machine).c_str(),
+                         gpu_summary(machine.gpu).c_str());
             if (!e.supported)
               throw Error(ErrorCode::unsupported, "--model " + e.id + ": the " + e.family +
                                                       " family is not supported by this Tether build yet (supported: smolvla)");
+            const PrecisionChoice choice = choose_precision(
+                machine, e.id, e.parameters, sub->get_option("--precision")->count() ? args->flags.precision : "");
+            std::fprintf(stderr, "tether go: %s\n", choice.reason.c_str());
             std::optional<std::string> src = local_checkpoint(e);
             if (!src) {
               if (!e.bundled_dir.empty())
@@ -97,7 +94,7 @@ Verb add_go(CLI::App& app) {
               }
             }
             ServeFlags flags = args->flags;
-            flags.precision = pick_precision(e, sub->get_option("--precision")->count() ? args->flags.precision : "");
+            flags.precision = choice.precision;
             const std::string dir = cached_export(e, *src, flags.precision);
             std::fprintf(stderr, "tether go: %s -> %s (%s)\n", e.id.c_str(), dir.c_str(), flags.precision.c_str());
             return run_server(dir, flags);

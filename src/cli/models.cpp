@@ -57,6 +57,17 @@ Json fit_on_target(const RegistryEntry& e, const Json& target) {
   return out;
 }
 
+Json figures_json(const RegistryEntry& e) {
+  Json out = Json::array();
+  for (const auto& f : e.figures)
+    out.push_back({{"benchmark", f.benchmark},
+                   {"metric", f.metric},
+                   {"value", f.value},
+                   {"setting", f.setting},
+                   {"source", {{"title", f.source_title}, {"url", f.source_url}}}});
+  return out;
+}
+
 Json entry_json(const RegistryEntry& e, const Json& all_targets) {
   Json disk = Json::object();
   if (e.parameters)
@@ -67,12 +78,16 @@ Json entry_json(const RegistryEntry& e, const Json& all_targets) {
   return {{"id", e.id},
           {"family", e.family},
           {"hf_repo", e.hf_repo.empty() ? Json(nullptr) : Json(e.hf_repo)},
+          {"subfolder", e.subfolder.empty() ? Json(nullptr) : Json(e.subfolder)},
           {"parameters", e.parameters ? Json(*e.parameters) : Json(nullptr)},
           {"license", e.license},
           {"supported", e.supported},
           {"description", e.description},
           {"disk_size", disk},
           {"local_path", local ? Json(*local) : Json(nullptr)},
+          {"published", e.figures.empty() ? Json(nullptr) : Json(headline_figure(e))},
+          {"figures", figures_json(e)},
+          {"figures_note", e.figures_note.empty() ? Json(nullptr) : Json(e.figures_note)},
           {"targets", targets}};
 }
 
@@ -83,14 +98,26 @@ struct ModelsArgs {
 
 int run_info(const ModelsArgs& a) {
   const Registry reg = Registry::load();
-  const Json info = entry_json(reg.get(a.id), a.target.empty() ? deployment_targets()
-                                                                 : Json::array({deployment_target(a.target)}));
+  const RegistryEntry& e = reg.get(a.id);
+  const Json info = entry_json(e, a.target.empty() ? deployment_targets() : Json::array({deployment_target(a.target)}));
   if (a.json) {
     std::cout << info.dump(2) << "\n";
     return kExitOk;
   }
-  for (const char* k : {"id", "family", "hf_repo", "parameters", "license", "supported", "description", "disk_size", "local_path"})
+  for (const char* k : {"id", "family", "hf_repo", "subfolder", "parameters", "license", "supported", "description",
+                        "disk_size", "local_path"}) {
+    if (std::string(k) == "subfolder" && info[k].is_null()) continue;
     std::printf("%-12s %s\n", k, info[k].is_string() ? info[k].get<std::string>().c_str() : info[k].dump().c_str());
+  }
+  for (const auto& f : e.figures) {
+    std::string metric = f.metric;  // the value already carries the unit
+    if (const auto unit = metric.find(" (%)"); unit != std::string::npos) metric.erase(unit, 4);
+    std::printf("%-12s %s: %s %s \u2014 %s\n", "published", f.benchmark.c_str(), figure_value(f).c_str(),
+                metric.c_str(), f.setting.c_str());
+    std::printf("%-12s source: %s, %s\n", "", f.source_title.c_str(), f.source_url.c_str());
+  }
+  if (!e.figures_note.empty())
+    std::printf("%-12s %s%s\n", "published", e.figures.empty() ? "none: " : "note: ", e.figures_note.c_str());
   for (const auto& t : info["targets"]) {
     const std::string tid = t["target"];
     if (t["fits"].is_null()) std::printf("%-12s %s: %s\n", "target", tid.c_str(), t["reason"].get<std::string>().c_str());
@@ -112,11 +139,12 @@ int list_models(const Registry& reg, bool json) {
     std::cout << arr.dump(2) << "\n";
     return kExitOk;
   }
-  std::printf("%-22s %-8s %-30s %7s %-10s %-7s %s\n", "id", "family", "source", "params", "tether", "local", "license");
+  const char* row = "%-22s %-8s %-30s %7s %-10s %-6s %-16s %s\n";
+  std::printf(row, "id", "family", "source", "params", "tether", "local", "published", "license");
   for (const auto& e : reg.entries())
-    std::printf("%-22s %-8s %-30s %7s %-10s %-7s %s\n", e.id.c_str(), e.family.c_str(),
-                e.hf_repo.empty() ? "(bundled)" : e.hf_repo.c_str(), params_str(e.parameters).c_str(),
-                e.supported ? "supported" : "not yet", local_checkpoint(e) ? "yes" : "no", e.license.c_str());
+    std::printf(row, e.id.c_str(), e.family.c_str(), e.hf_repo.empty() ? "(bundled)" : e.hf_repo.c_str(),
+                params_str(e.parameters).c_str(), e.supported ? "supported" : "not yet",
+                local_checkpoint(e) ? "yes" : "no", headline_figure(e).c_str(), e.license.c_str());
   return kExitOk;
 }
 
@@ -143,16 +171,19 @@ std::string pull_model(const RegistryEntry& e, const std::string& revision) {
     hub.snapshot_download(req.repo, "main", req.patterns);
   }
   std::fprintf(stderr, "pulling %s @ %s\n", e.hf_repo.c_str(), revision.c_str());
-  return hub.snapshot_download(e.hf_repo, revision, e.patterns);
+  if (e.subfolder.empty()) return hub.snapshot_download(e.hf_repo, revision, e.patterns);
+  // Only the entry's folder of a repo that holds several checkpoints.
+  const std::vector<std::string> patterns = e.patterns.empty() ? std::vector<std::string>{e.subfolder + "/"} : e.patterns;
+  return (fs::path(hub.snapshot_download(e.hf_repo, revision, patterns)) / e.subfolder).string();
 }
 
 Verb add_models(CLI::App& app) {
   auto args = std::make_shared<ModelsArgs>();
   CLI::App* sub = app.add_subcommand("models", "The model registry: list, info, pull");
   sub->require_subcommand(1);
-  CLI::App* list = sub->add_subcommand("list", "Models Tether knows, their size and whether they are on disk");
+  CLI::App* list = sub->add_subcommand("list", "Models Tether knows: size, whether they are on disk, headline published figure");
   list->add_flag("--json", args->json, "Print JSON");
-  CLI::App* info = sub->add_subcommand("info", "One model: sources, sizes per precision, which targets it fits");
+  CLI::App* info = sub->add_subcommand("info", "One model: sources, sizes per precision, published figures, which targets it fits");
   info->add_option("id", args->id, "Registry id")->required();
   info->add_option("--target", args->target, "Only this deployment target (see tether inspect targets)");
   info->add_flag("--json", args->json, "Print JSON");

@@ -6,13 +6,24 @@
 #include <string>
 #include <vector>
 
+#include "cli/hardware.h"
 #include "core/json_util.h"
 
 namespace tether::cli {
 
+// A benchmark result published for a model, with where it was published.
+struct PublishedFigure {
+  std::string benchmark;  // "LIBERO (average of 4 suites)", "LIBERO-10 / LIBERO-Long"
+  std::string metric;     // "success rate (%)"
+  double value = 0;
+  std::string setting;    // what was fine-tuned and evaluated
+  std::string source_title, source_url;
+};
+
 struct RegistryEntry {
   std::string id, family, description, license;
   std::string hf_repo;      // empty for a bundled checkpoint
+  std::string subfolder;    // the checkpoint's folder inside hf_repo, for repos that hold several; empty: the root
   std::string bundled_dir;  // absolute; empty for a hub checkpoint
   std::optional<int64_t> parameters;
   bool supported = false;  // the registry says so and this build has the family
@@ -23,7 +34,15 @@ struct RegistryEntry {
   };
   std::vector<Requirement> requires_repos;
   std::vector<std::string> patterns;  // which files of hf_repo to download
+  std::vector<PublishedFigure> figures;  // the first is the headline
+  std::string figures_note;              // why there are none, or what to keep in mind reading them
 };
+
+// The headline figure in a few characters ("LIBERO 87.3%"): the first figure's benchmark without its qualifier, and
+// its value; "-" when the entry has none.
+std::string headline_figure(const RegistryEntry& entry);
+// "87.3%" (or "87.3" for a metric not in percent).
+std::string figure_value(const PublishedFigure& figure);
 
 class Registry {
  public:
@@ -52,18 +71,13 @@ std::string pull_model(const RegistryEntry& entry, const std::string& revision =
 double export_checkpoint(const std::string& src, const std::string& out, const std::string& precision,
                          const std::string& target, const std::string& embodiment_file = "");
 
-// Prints the registry as a table (or JSON): id, family, source, parameters, support, local presence, license.
+// Prints the registry as a table (or JSON): id, family, source, parameters, support, local presence, headline
+// published figure, license.
 int list_models(const Registry& reg, bool json);
 
 // The deployment profiles of models/targets.json (`tether inspect targets`), and one of them by id (an
 // invalid_argument error naming the flag when unknown).
 Json deployment_targets();
 Json deployment_target(const std::string& id);
-
-// A /proc/meminfo field in bytes ("MemAvailable", "MemTotal"); -1 when absent.
-int64_t meminfo_bytes(const std::string& key);
-
-// Approximate memory to run `parameters` weights at `precision` ("fp32", "bf16", "fp16"), activations included.
-double memory_needed_bytes(int64_t parameters, const std::string& precision);
 
 }  // namespace tether::cli

@@ -544,6 +544,10 @@ struct Server::Impl {
       trace.latency["total"] = ms_since(received);
       record_trace(trace, request_id, e.status(), e.code(), e.what());
       throw;
+    } catch (const std::exception& e) {
+      trace.latency["total"] = ms_since(received);
+      record_trace(trace, request_id, 500, "internal_error", std::string("internal error: ") + e.what());
+      throw;
     }
   }
 
