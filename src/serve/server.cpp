@@ -569,7 +569,9 @@ struct Server::Impl {
 
     auto ep = wedges.episodes().get(trace.episode_id);
     const std::vector<float> state = obs.state;
-    std::vector<float> normalized_state = engine->normalize_state ? engine->normalize_state(state) : state;
+    // Only the similarity skip measures in normalised units: nothing to compute without it.
+    std::vector<float> normalized_state;
+    if (wedges.skip_enabled()) normalized_state = engine->normalize_state ? engine->normalize_state(state) : state;
     runtime::WedgeReport report;
     std::optional<std::vector<float>> actions;
     int64_t rows = spec.chunk_size;
