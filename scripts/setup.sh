@@ -8,6 +8,9 @@ preset="${1:-release}"
 packages=(
   build-essential cmake ninja-build pkg-config git curl python3
   libopenblas-openmp-dev libdnnl-dev
+  # Debian's dnnl-config.cmake calls find_package(OpenCL REQUIRED) (libdnnl is built with the OpenCL GPU runtime);
+  # the package is only a Recommends of libdnnl-dev, which --no-install-recommends skips.
+  ocl-icd-opencl-dev
   nlohmann-json3-dev libcli11-dev libspdlog-dev libfmt-dev
   libpcre2-dev libicu-dev libspng-dev libturbojpeg0-dev libboost1.81-dev
   libcurl4-openssl-dev libssl-dev
