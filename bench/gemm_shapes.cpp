@@ -1,5 +1,7 @@
-// Times SmolVLA's full-size GEMM shapes (y[M,N] = x[M,K] W[N,K]^T) on OpenBLAS and oneDNN, f32 and bf16,
-// to choose the library behind tether::cpu::gemm. Results and the decision: bench/GEMM.md.
+// Times SmolVLA's full-size GEMM shapes (y[M,N] = x[M,K] W[N,K]^T) on every candidate: OpenBLAS, oneDNN matmul
+// (f32, native bf16 where the CPU has it), Tether's panel GEMM with f32 / bf16 / fp16 weights widened in the kernel,
+// and bf16 weights widened to an f32 copy before each oneDNN call. Chooses the library and the half-precision path
+// on CPUs without bf16 instructions; prints the machine's best measured fp32 GEMM rate. Results: bench/GEMM.md.
 #include <cblas.h>
 #include <omp.h>
 
@@ -9,13 +11,17 @@
 #include <cstdio>
 #include <cstdlib>
 #include <cstring>
+#include <ctime>
 #include <functional>
 #include <oneapi/dnnl/dnnl.hpp>
 #include <random>
 #include <string>
 #include <vector>
 
+#include "backend/cpu/cpu_features.h"
 #include "backend/cpu/gemm.h"
+#include "backend/cpu/panel_gemm.h"
+#include "core/dtype.h"
 
 namespace {
 
@@ -58,7 +64,16 @@ const GemmShape kShapes[] = {
     {"expert", "action_out 720->32", 50, 32, 720, 10},
 };
 
+// --cpu-time: process CPU time instead of the wall clock. With --threads 1 it measures the work of one core even
+// while other jobs share the machine (they take wall time, not this process's CPU time).
+bool g_cpu_time = false;
+
 double seconds_now() {
+  if (g_cpu_time) {
+    timespec ts;
+    clock_gettime(CLOCK_PROCESS_CPUTIME_ID, &ts);
+    return double(ts.tv_sec) + 1e-9 * double(ts.tv_nsec);
+  }
   return std::chrono::duration<double>(std::chrono::steady_clock::now().time_since_epoch()).count();
 }
 
@@ -83,12 +98,6 @@ double time_call(const std::function<void()>& fn, double min_batch_s) {
   return best;
 }
 
-struct Row {
-  const GemmShape* shape;
-  std::vector<double> secs;  // per variant
-  double max_rel_diff_f32 = 0, max_rel_diff_bf16 = 0;
-};
-
 float max_rel_diff(const std::vector<float>& a, const std::vector<float>& ref) {
   float scale = 0, diff = 0;
   for (std::size_t i = 0; i < a.size(); ++i) {
@@ -98,43 +107,55 @@ float max_rel_diff(const std::vector<float>& a, const std::vector<float>& ref) {
   return diff / std::max(scale, 1e-30f);
 }
 
-const char* isa_name(dnnl::cpu_isa isa) {
-  switch (isa) {
-    case dnnl::cpu_isa::avx2: return "avx2";
-    case dnnl::cpu_isa::avx2_vnni: return "avx2_vnni";
-    case dnnl::cpu_isa::avx512_core: return "avx512_core";
-    case dnnl::cpu_isa::avx512_core_vnni: return "avx512_core_vnni";
-    case dnnl::cpu_isa::avx512_core_bf16: return "avx512_core_bf16";
-    case dnnl::cpu_isa::avx512_core_amx: return "avx512_core_amx";
-    default: return "other";
-  }
-}
+using dt = dnnl::memory::data_type;
+using tag = dnnl::memory::format_tag;
+namespace detail = tether::cpu::detail;
+
+struct Variant {
+  const char* name;
+  const char* what;
+};
+const Variant kVariants[] = {
+    {"OpenBLAS", "cblas_sgemm, W [N,K] in place"},
+    {"mm-f32", "oneDNN matmul, f32, W packed once (Tether's fp32 path)"},
+    {"mm-bf16", "oneDNN matmul, bf16 x and W packed once, f32 accumulation (native bf16; n/a without it)"},
+    {"pnl-f32", "Tether panel GEMM, f32 weights"},
+    {"pnl-bf16", "Tether panel GEMM, bf16 weights widened in the kernel, f32 x"},
+    {"pnl-f16", "Tether panel GEMM, fp16 weights widened in the kernel, f32 x"},
+    {"cvt+mm", "bf16 W [N,K] widened to an f32 copy, then oneDNN matmul on it in place"},
+};
+constexpr int kNumVariants = int(sizeof kVariants / sizeof kVariants[0]);
+
+struct Row {
+  const GemmShape* shape;
+  double secs[kNumVariants] = {};  // 0: not available here
+  double err[kNumVariants] = {};   // max |y - y_OpenBLAS| / max |y_OpenBLAS|
+};
 
 }  // namespace
 
-int main(int argc, char** argv) {
+int main(int argc, char** argv) try {
   int threads = 2;
   double min_batch_s = 0.05;
   for (int i = 1; i < argc; ++i) {
     if (!std::strcmp(argv[i], "--threads") && i + 1 < argc) threads = std::atoi(argv[++i]);
     else if (!std::strcmp(argv[i], "--min-batch-ms") && i + 1 < argc) min_batch_s = std::atof(argv[++i]) / 1e3;
+    else if (!std::strcmp(argv[i], "--cpu-time")) g_cpu_time = true;
     else {
-      std::fprintf(stderr, "usage: gemm_shapes [--threads N] [--min-batch-ms MS]\n");
+      std::fprintf(stderr, "usage: gemm_shapes [--threads N] [--min-batch-ms MS] [--cpu-time]\n");
       return 2;
     }
   }
-  using dt = dnnl::memory::data_type;
-  using tag = dnnl::memory::format_tag;
+  omp_set_num_threads(threads);
+  const tether::cpu::CpuPaths& paths = tether::cpu::cpu_paths();  // applies TETHER_MAX_CPU_ISA before oneDNN starts
+  const detail::PanelKernel& panel = detail::panel_kernel();
   dnnl::engine eng(dnnl::engine::kind::cpu, 0);
   dnnl::stream strm(eng);
-  std::printf("OpenBLAS: %s\noneDNN: %d.%d.%d, ISA %s\nthreads: %d (OpenMP, one runtime)\n\n", tether::cpu::blas_name(),
-              dnnl_version()->major, dnnl_version()->minor, dnnl_version()->patch,
-              isa_name(dnnl::get_effective_cpu_isa()), threads);
+  std::printf("OpenBLAS: %s\noneDNN: %d.%d.%d, ISA %s\nTether dispatch: %s; panel kernel %s\nthreads: %d (OpenMP, "
+              "one runtime)\n\n",
+              tether::cpu::blas_name(), dnnl_version()->major, dnnl_version()->minor, dnnl_version()->patch,
+              paths.onednn_isa.c_str(), tether::cpu::cpu_paths_summary().c_str(), panel.name, threads);
 
-  // Five libraries/set-ups, each timed at `threads` and then at 1 thread.
-  const char* variants[] = {"OpenBLAS", "dnnlsgem", "mm-plnW", "mm-pckW", "mm-bf16",
-                            "OB/1t",    "dsgem/1t", "plnW/1t", "pckW/1t", "bf16/1t"};
-  const int nvar = 10;
   std::vector<Row> rows;
   std::mt19937 gen(1);
   std::uniform_real_distribution<float> dist(-1.0f, 1.0f);
@@ -143,102 +164,135 @@ int main(int argc, char** argv) {
     std::vector<float> x(std::size_t(m * k)), w(std::size_t(n * k)), ref(std::size_t(m * n)), y(ref.size());
     for (auto& v : x) v = dist(gen);
     for (auto& v : w) v = dist(gen) * 0.05f;
-    Row row{&s, std::vector<double>(nvar, 0.0)};
+    Row row{&s};
 
     auto openblas = [&] {
       cblas_sgemm(CblasRowMajor, CblasNoTrans, CblasTrans, int(m), int(n), int(k), 1.0f, x.data(), int(k),
-                  w.data(), int(k), 0.0f, ref.data(), int(n));
+                  w.data(), int(k), 0.0f, y.data(), int(n));
     };
-    auto onednn_sgemm = [&] { dnnl_sgemm('N', 'T', m, n, k, 1.0f, x.data(), k, w.data(), k, 0.0f, y.data(), n); };
+    openblas();
+    ref = y;
 
-    // Matmul primitives: W [N,K] row-major is the {K,N} matrix in format `ba`.
-    dnnl::memory::desc src_md({m, k}, dt::f32, tag::ab), dst_md({m, n}, dt::f32, tag::ab);
-    dnnl::memory::desc w_user_md({k, n}, dt::f32, tag::ba);
+    // oneDNN matmul: W [N,K] row-major is the {K,N} matrix in format `ba`.
+    const dnnl::memory::desc src_md({m, k}, dt::f32, tag::ab), dst_md({m, n}, dt::f32, tag::ab);
+    const dnnl::memory::desc w_user_md({k, n}, dt::f32, tag::ba);
     dnnl::memory src_mem(src_md, eng, x.data()), dst_mem(dst_md, eng, y.data());
     dnnl::memory w_user(w_user_md, eng, w.data());
-
-    dnnl::matmul::primitive_desc plain_pd(dnnl::matmul::desc(src_md, w_user_md, dst_md), eng);
-    dnnl::matmul plain(plain_pd);
-    auto run_plain = [&] {
-      plain.execute(strm, {{DNNL_ARG_SRC, src_mem}, {DNNL_ARG_WEIGHTS, w_user}, {DNNL_ARG_DST, dst_mem}});
-      strm.wait();
-    };
-
-    dnnl::memory::desc w_any({k, n}, dt::f32, tag::any);
-    dnnl::matmul::primitive_desc packed_pd(dnnl::matmul::desc(src_md, w_any, dst_md), eng);
+    dnnl::matmul::primitive_desc packed_pd(dnnl::matmul::desc(src_md, dnnl::memory::desc({k, n}, dt::f32, tag::any),
+                                                              dst_md), eng);
     dnnl::memory w_packed(packed_pd.weights_desc(), eng);
     dnnl::reorder(w_user, w_packed).execute(strm, w_user, w_packed);
     dnnl::matmul packed(packed_pd);
-    auto run_packed = [&] {
+    auto mm_f32 = [&] {
       packed.execute(strm, {{DNNL_ARG_SRC, src_mem}, {DNNL_ARG_WEIGHTS, w_packed}, {DNNL_ARG_DST, dst_mem}});
       strm.wait();
     };
 
-    // bf16 inputs (converted once, outside the timing), f32 output.
-    dnnl::memory::desc src_bf_md({m, k}, dt::bf16, tag::ab), w_bf_any({k, n}, dt::bf16, tag::any);
-    dnnl::matmul::primitive_desc bf_pd(dnnl::matmul::desc(src_bf_md, w_bf_any, dst_md), eng);
-    dnnl::memory src_bf(src_bf_md, eng), w_bf(bf_pd.weights_desc(), eng);
-    dnnl::reorder(src_mem, src_bf).execute(strm, src_mem, src_bf);
-    dnnl::reorder(w_user, w_bf).execute(strm, w_user, w_bf);
-    dnnl::matmul bf(bf_pd);
-    std::vector<float> y_bf(ref.size());
-    dnnl::memory dst_bf(dst_md, eng, y_bf.data());
-    auto run_bf = [&] {
-      bf.execute(strm, {{DNNL_ARG_SRC, src_bf}, {DNNL_ARG_WEIGHTS, w_bf}, {DNNL_ARG_DST, dst_bf}});
-      strm.wait();
-    };
+    // Native bf16 (x converted outside the timing); absent where oneDNN has no bf16 matmul.
+    std::function<void()> mm_bf16;
+    dnnl::memory src_bf, w_bf;
+    dnnl::matmul bf;
+    try {
+      const dnnl::memory::desc src_bf_md({m, k}, dt::bf16, tag::ab);
+      dnnl::matmul::primitive_desc bf_pd(
+          dnnl::matmul::desc(src_bf_md, dnnl::memory::desc({k, n}, dt::bf16, tag::any), dst_md), eng);
+      src_bf = dnnl::memory(src_bf_md, eng);
+      w_bf = dnnl::memory(bf_pd.weights_desc(), eng);
+      dnnl::reorder(src_mem, src_bf).execute(strm, src_mem, src_bf);
+      dnnl::reorder(w_user, w_bf).execute(strm, w_user, w_bf);
+      bf = dnnl::matmul(bf_pd);
+      mm_bf16 = [&] {
+        bf.execute(strm, {{DNNL_ARG_SRC, src_bf}, {DNNL_ARG_WEIGHTS, w_bf}, {DNNL_ARG_DST, dst_mem}});
+        strm.wait();
+      };
+    } catch (const dnnl::error&) {
+    }
     strm.wait();
 
-    const std::function<void()> fns[] = {openblas, onednn_sgemm, run_plain, run_packed, run_bf};
-    for (int pass = 0; pass < 2; ++pass) {
-      omp_set_num_threads(pass == 0 ? threads : 1);
-      for (int v = 0; v < 5; ++v) {
-        std::fill(y.begin(), y.end(), 0.0f);
-        row.secs[std::size_t(pass * 5 + v)] = time_call(fns[v], min_batch_s);
-        if (v == 1 || v == 2 || v == 3) row.max_rel_diff_f32 = std::max<double>(row.max_rel_diff_f32, max_rel_diff(y, ref));
-      }
+    // The panel GEMM, one packing per weight type.
+    const auto pf32 = detail::pack_f32_panels(w.data(), n, k, panel.panel_width);
+    const auto pbf16 = detail::pack_half_panels(w.data(), n, k, panel.panel_width, detail::PanelType::bf16);
+    const auto pf16 = detail::pack_half_panels(w.data(), n, k, panel.panel_width, detail::PanelType::f16);
+    const auto pbias = detail::pad_bias(nullptr, n, panel.panel_width);
+    auto panel_run = [&](detail::PanelType t, const void* data) {
+      return [&, t, data] { panel.get(t)({x.data(), m, k, k, data, n, pbias.data(), y.data(), n, false}); };
+    };
+
+    // bf16 W kept as [N,K], widened into an f32 copy before each call, then oneDNN on the copy in place.
+    std::vector<uint16_t> w_half(w.size());
+    for (std::size_t i = 0; i < w.size(); ++i) w_half[i] = tether::f32_to_bf16(w[i]);
+    std::vector<float> w_wide(w.size());
+    dnnl::memory w_wide_mem(w_user_md, eng, w_wide.data());
+    dnnl::matmul plain(dnnl::matmul::primitive_desc(dnnl::matmul::desc(src_md, w_user_md, dst_md), eng));
+    auto convert_then_mm = [&] {
+      const int64_t total = int64_t(w_half.size());
+#pragma omp parallel for
+      for (int64_t i = 0; i < total; ++i) w_wide[std::size_t(i)] = tether::bf16_to_f32(w_half[std::size_t(i)]);
+      plain.execute(strm, {{DNNL_ARG_SRC, src_mem}, {DNNL_ARG_WEIGHTS, w_wide_mem}, {DNNL_ARG_DST, dst_mem}});
+      strm.wait();
+    };
+
+    const std::function<void()> fns[kNumVariants] = {openblas,
+                                                     mm_f32,
+                                                     mm_bf16,
+                                                     panel_run(detail::PanelType::f32, pf32.data()),
+                                                     panel_run(detail::PanelType::bf16, pbf16.data()),
+                                                     panel_run(detail::PanelType::f16, pf16.data()),
+                                                     convert_then_mm};
+    for (int v = 0; v < kNumVariants; ++v) {
+      if (!fns[v]) continue;
+      std::fill(y.begin(), y.end(), 0.0f);
+      row.secs[v] = time_call(fns[v], min_batch_s);
+      row.err[v] = max_rel_diff(y, ref);
     }
-    row.max_rel_diff_bf16 = max_rel_diff(y_bf, ref);
-    omp_set_num_threads(threads);
     rows.push_back(row);
   }
 
-  std::printf(
-      "GFLOP/s, %d threads unless marked /1t. OB = OpenBLAS; dnnlsgem = dnnl_sgemm; mm = oneDNN matmul;\n"
-      "plnW = W used in place ([N,K] row-major, as mmap'ed); pckW = W reordered once to the primitive's\n"
-      "preferred layout; bf16 = bf16 x and packed bf16 W (converted outside the timing), f32 accumulation\n"
-      "and output. relerr = max |y - y_OpenBLAS| / max |y_OpenBLAS|.\n\n",
-      threads);
-  std::printf("%-10s %-27s %16s %5s", "group", "shape", "MxNxK", "calls");
-  for (int v = 0; v < nvar; ++v) std::printf(" %8.8s", variants[v]);
-  std::printf(" %9s %9s\n", "relerr32", "relerr16");
-  std::vector<double> total(nvar, 0.0);
+  std::printf("GFLOP/s at %d threads; n/a: not available on this CPU. relerr = max |y - y_OpenBLAS| / max |y_OpenBLAS|.\n",
+              threads);
+  for (const Variant& v : kVariants) std::printf("  %-9s %s\n", v.name, v.what);
+  std::printf("\n%-10s %-27s %16s %5s", "group", "shape", "MxNxK", "calls");
+  for (const Variant& v : kVariants) std::printf(" %8.8s", v.name);
+  std::printf("   relerr: %-8s %-8s %-8s\n", "mm-bf16", "pnl-bf16", "pnl-f16");
+  double total[kNumVariants] = {};
+  double best_f32 = 0;
   for (const Row& r : rows) {
     const GemmShape& s = *r.shape;
     const double flops = 2.0 * double(s.m) * double(s.n) * double(s.k);
     char dims[40];
     std::snprintf(dims, sizeof dims, "%lldx%lldx%lld", (long long)s.m, (long long)s.n, (long long)s.k);
     std::printf("%-10s %-27s %16s %5d", s.group, s.name, dims, s.calls);
-    for (int v = 0; v < nvar; ++v) {
-      std::printf(" %8.1f", flops / r.secs[std::size_t(v)] / 1e9);
-      total[std::size_t(v)] += s.calls * r.secs[std::size_t(v)];
+    for (int v = 0; v < kNumVariants; ++v) {
+      if (r.secs[v] > 0) std::printf(" %8.1f", flops / r.secs[v] / 1e9);
+      else std::printf(" %8s", "n/a");
+      total[v] += s.calls * r.secs[v];
     }
-    std::printf(" %9.1e %9.1e\n", r.max_rel_diff_f32, r.max_rel_diff_bf16);
+    for (int v : {0, 1, 3}) best_f32 = std::max(best_f32, r.secs[v] > 0 ? flops / r.secs[v] / 1e9 : 0.0);
+    std::printf("           %-8.1e %-8.1e %-8.1e\n", r.err[2], r.err[4], r.err[5]);
   }
   std::printf("\nGEMM time per inference (sum of calls x time, seconds):\n");
-  for (int v = 0; v < nvar; ++v) std::printf("  %-18s %7.3f\n", variants[v], total[std::size_t(v)]);
+  for (int v = 0; v < kNumVariants; ++v) {
+    if (rows.front().secs[v] > 0) std::printf("  %-9s %7.3f\n", kVariants[v].name, total[v]);
+    else std::printf("  %-9s %7s\n", kVariants[v].name, "n/a");
+  }
   std::printf("\nper group (seconds per inference):\n%-10s", "group");
-  for (int v = 0; v < nvar; ++v) std::printf(" %8.8s", variants[v]);
+  for (const Variant& v : kVariants) std::printf(" %8.8s", v.name);
   std::printf("\n");
   for (const char* group : {"vision", "connector", "prefix241", "expert"}) {
     std::printf("%-10s", group);
-    for (int v = 0; v < nvar; ++v) {
+    for (int v = 0; v < kNumVariants; ++v) {
       double t = 0;
       for (const Row& r : rows)
-        if (!std::strcmp(r.shape->group, group)) t += r.shape->calls * r.secs[std::size_t(v)];
-      std::printf(" %8.3f", t);
+        if (!std::strcmp(r.shape->group, group)) t += r.shape->calls * r.secs[v];
+      if (rows.front().secs[v] > 0) std::printf(" %8.3f", t);
+      else std::printf(" %8s", "n/a");
     }
     std::printf("\n");
   }
+  std::printf("\nbest measured fp32 GEMM rate: %.1f GFLOP/s (%d threads, best shape of OpenBLAS / oneDNN / panel)\n",
+              best_f32, threads);
   return 0;
+} catch (const std::exception& e) {
+  std::fprintf(stderr, "error: %s\n", e.what());
+  return 2;
 }

@@ -10,7 +10,7 @@ once=0
 [ -t 0 ] || once=1
 [ "${1:-}" = "--once" ] && once=1
 port="${TETHER_DEMO_PORT:-8000}"
-scripts/setup.sh release
+scripts/setup.sh release tether   # the binary alone: tests and benchmarks build with scripts/test.sh
 build/release/tether serve models/demo/smolvla-demo --port "$port" > /tmp/tether-demo.$$ &
 server=$!
 trap 'kill -TERM $server 2>/dev/null || true; wait $server 2>/dev/null || true; rm -f /tmp/tether-demo.$$' EXIT

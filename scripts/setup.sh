@@ -1,9 +1,11 @@
 #!/usr/bin/env bash
 # Installs what the build needs (Debian 12 packages) and builds Tether. Idempotent: quick when already done.
-# Usage: scripts/setup.sh [preset]   (preset: release (default), ci, debug, asan)
+# Usage: scripts/setup.sh [preset [target...]]   (preset: release (default), ci, debug, asan; targets: all by
+# default, e.g. `tether` alone for the demo)
 set -euo pipefail
 cd "$(dirname "$0")/.."
 preset="${1:-release}"
+targets=("${@:2}")
 
 packages=(
   build-essential cmake ninja-build pkg-config git curl python3
@@ -31,5 +33,11 @@ fi
 if [ ! -f "build/$preset/build.ninja" ]; then
   cmake --preset "$preset" >/dev/null
 fi
-cmake --build --preset "$preset" -- -j"$(nproc)" | grep -vE '^\[[0-9]+/[0-9]+\] (Building|Linking)' || true
+# Progress lines are filtered out; the build's own exit status decides (a failed build never passes as done).
+set +e
+cmake --build --preset "$preset" ${targets[@]+--target "${targets[@]}"} -- -j"$(nproc)" 2>&1 |
+  grep -vE '^\[[0-9]+/[0-9]+\] (Building|Linking)'
+status=${PIPESTATUS[0]}
+set -e
+[ "$status" -eq 0 ] || { echo "setup: the $preset build failed (exit $status)" >&2; exit 1; }
 test -x "build/$preset/tether"

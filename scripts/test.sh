@@ -2,7 +2,10 @@
 # Builds Tether (installing what is missing) and runs the default test suite: the C++ unit, parity and
 # integration tests (CTest), then the Python client's unit tests and the real-HTTP integration tests of
 # `tether serve` (pytest, in .venv). Under CI (CI=true) the build treats warnings as errors.
-# Slow suites (full-size benchmarks, fixture regeneration, sanitizers, fuzzing) have their own commands.
+# The unit and parity labels then run a second time with every dispatch capped at AVX2 (Tether's own
+# TETHER_MAX_CPU_ISA and oneDNN's ONEDNN_MAX_CPU_ISA), so the AVX2 path is checked whatever CPU this is.
+# Slow suites (full-size benchmarks, fixture regeneration, sanitizers, fuzzing, the fresh-machine and arm64
+# checks) have their own commands.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 preset=release
@@ -11,3 +14,8 @@ scripts/setup.sh "$preset"
 scripts/python_env.sh
 ctest --preset "$preset" -j"$(nproc)" --label-exclude slow "$@"
 TETHER_BINARY="build/$preset/tether" .venv/bin/python -m pytest -q python/tests
+if [ "$(uname -m)" = x86_64 ]; then
+  echo "== unit and parity tests again, dispatch capped at AVX2 (TETHER_MAX_CPU_ISA=AVX2 ONEDNN_MAX_CPU_ISA=AVX2)"
+  TETHER_MAX_CPU_ISA=AVX2 ONEDNN_MAX_CPU_ISA=AVX2 ctest --preset "$preset" -j"$(nproc)" -L 'unit|parity' \
+    --label-exclude slow "$@"
+fi

@@ -209,25 +209,34 @@ def test_early_answer_to_a_large_body_is_reported(fake):
 # -- retries --------------------------------------------------------------------------------------------------
 
 
-def test_503_is_retried_with_backoff_then_succeeds(fake):
+def recorded_sleeps(monkeypatch) -> list:
+    """Replaces the client's sleep with a recorder: the delays it chose are asserted, not the wall clock."""
+    import tether_client.client as client_module
+
+    delays: list = []
+    monkeypatch.setattr(client_module.time, "sleep", delays.append)
+    return delays
+
+
+def test_503_is_retried_with_backoff_then_succeeds(fake, monkeypatch):
     fake.script = [error_reply(503, "not_ready"), error_reply(503, "queue_full"), Reply()]
+    delays = recorded_sleeps(monkeypatch)
     with fast_client(fake.url, backoff=0.05, max_backoff=1.0) as client:
-        start = time.monotonic()
         result = client.act(state=STATE, instruction="x", request_id="same-id")
-        elapsed = time.monotonic() - start
     assert result.actions.shape == (50, 6)
     assert len(fake.requests) == 3
     assert {r.headers["x-tether-request-id"] for r in fake.requests} == {"same-id"}
-    assert 0.05 + 0.1 <= elapsed < 3.0  # two delays: 0.05 then 0.1 (plus at most 10% jitter); loose top for busy machines
+    # Two delays, doubling from the backoff, each with at most 10% jitter.
+    assert len(delays) == 2
+    assert 0.05 <= delays[0] <= 0.055 and 0.1 <= delays[1] <= 0.11
 
 
-def test_retry_after_is_honoured(fake):
+def test_retry_after_is_honoured(fake, monkeypatch):
     fake.script = [error_reply(503, "queue_full", headers={"Retry-After": "1"}), Reply()]
+    delays = recorded_sleeps(monkeypatch)
     with fast_client(fake.url) as client:
-        start = time.monotonic()
         client.act(state=STATE, instruction="x")
-        elapsed = time.monotonic() - start
-    assert 1.0 <= elapsed < 4.0
+    assert len(delays) == 1 and 1.0 <= delays[0] <= 1.1
     assert len(fake.requests) == 2
 
 

@@ -8,7 +8,9 @@
 #include <iostream>
 #include <numeric>
 
+#include "backend/cpu/cpu_features.h"
 #include "backend/cpu/gemm.h"
+#include "backend/cpu/packed_linear.h"
 #include "cli/commands.h"
 #include "cli/observation_args.h"
 #include "core/json_util.h"
@@ -137,6 +139,9 @@ int run_bench(const BenchArgs& a) {
       {"throughput_per_s", double(a.iterations) * a.batch / wall_s},
       {"peak_rss_mb", peak_rss_mb()},
       {"blas", cpu::blas_name()},
+      {"gemm", cpu::gemm_name(policy->spec().precision)},
+      {"compute", cpu::compute_mode_description(policy->spec().precision)},
+      {"cpu_dispatch", cpu::cpu_paths_summary()},
       {"threads", cpu::blas_threads()},
   };
   if (a.adaptive_threshold >= 0) report["adaptive"] = compare_adaptive(*policy, obs, a);
@@ -144,9 +149,11 @@ int run_bench(const BenchArgs& a) {
     std::cout << report.dump(2) << "\n";
     return kExitOk;
   }
-  std::printf("%s  (%s, %s, batch %d, %d iterations after %d warm-up, %s x%d threads)\n", a.checkpoint.c_str(),
+  std::printf("%s  (%s, %s, batch %d, %d iterations after %d warm-up, %d threads)\n", a.checkpoint.c_str(),
               policy->spec().family.c_str(), inference_mode(policy->spec()).c_str(), a.batch, a.iterations, a.warmup,
-              cpu::blas_name(), cpu::blas_threads());
+              cpu::blas_threads());
+  std::printf("  linear       %s\n  cpu          %s\n", report["compute"].get<std::string>().c_str(),
+              report["cpu_dispatch"].get<std::string>().c_str());
   std::printf("  latency ms   mean %.2f  p50 %.2f  p95 %.2f  p99 %.2f  max %.2f\n", report["latency_ms"]["mean"].get<double>(),
               report["latency_ms"]["p50"].get<double>(), report["latency_ms"]["p95"].get<double>(),
               report["latency_ms"]["p99"].get<double>(), report["latency_ms"]["max"].get<double>());

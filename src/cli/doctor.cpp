@@ -13,7 +13,9 @@
 #include <cpuid.h>
 #endif
 
+#include "backend/cpu/cpu_features.h"
 #include "backend/cpu/gemm.h"
+#include "backend/cpu/packed_linear.h"
 #include "cli/commands.h"
 #include "cli/hardware.h"
 #include "cli/registry.h"
@@ -90,16 +92,25 @@ void cpu_checks(std::vector<Check>& out) {
                  amx_tile && amx_bf16 ? "present (AMX-BF16 tiles)" : "absent", ""});
 #if defined(__AVX512F__)
   const bool build_ok = avx512;
-  const char* build = "this build targets AVX-512 (-march=native at build time)";
+  const char* build = "this build targets AVX-512 (TETHER_NATIVE=ON: -march=native at build time)";
 #else
   const bool build_ok = avx2;
-  const char* build = "this build targets AVX2";
+  const char* build = "this build targets x86-64-v3 (AVX2); wider paths are chosen at run time";
 #endif
   out.push_back({"cpu", "build target", build_ok ? Status::ok : Status::fail, build,
-                 "rebuild on this machine: scripts/setup.sh (the default build tunes for the build machine's CPU)"});
+                 "rebuild on this machine: scripts/setup.sh (a TETHER_NATIVE build runs only on its build machine's CPU)"});
 #elif defined(__aarch64__)
   out.push_back({"cpu", "NEON", Status::ok, "present (AArch64)", ""});
 #endif
+  // The paths this CPU gets, after TETHER_MAX_CPU_ISA / ONEDNN_MAX_CPU_ISA.
+  try {
+    out.push_back({"cpu", "dispatch", Status::ok, cpu::cpu_paths_summary(), ""});
+    for (cpu::Precision p : {cpu::Precision::fp32, cpu::Precision::bf16, cpu::Precision::fp16})
+      out.push_back({"cpu", std::string("--precision ") + cpu::precision_name(p), Status::ok,
+                     cpu::compute_mode_description(p), ""});
+  } catch (const Error& e) {
+    out.push_back({"cpu", "dispatch", Status::fail, e.what(), "fix or unset TETHER_MAX_CPU_ISA"});
+  }
   const char* omp = std::getenv("OMP_NUM_THREADS");
   out.push_back({"cpu", "GEMM library", Status::ok,
                  std::string(cpu::blas_name()) + ", " + std::to_string(cpu::blas_threads()) + " threads" +

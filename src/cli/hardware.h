@@ -36,6 +36,10 @@ struct MachineProbe {
   std::string cpu;  // model name from /proc/cpuinfo
   int cores = 0;
   int64_t memory_total = -1, memory_available = -1;  // bytes; -1 when /proc/meminfo lacks the field
+  // bf16 GEMMs run on the CPU's bf16 instructions (cpu::cpu_paths(), under TETHER_MAX_CPU_ISA); without them bf16
+  // weights are widened to fp32 in the kernel: half the memory, no faster than fp32.
+  bool native_bf16 = false;
+  std::string isa;  // the dispatch level, e.g. "avx2", "avx512_bf16"
   GpuProbe gpu;
 };
 
@@ -63,8 +67,8 @@ std::string cpu_summary(const MachineProbe& probe);
 struct PrecisionChoice {
   std::string precision, reason;  // reason: one line saying what decided it
 };
-// fp32 (the reference) unless `asked` names a precision, or the weights would not fit 80% of the available memory in
-// fp32, then bf16.
+// `asked` when given. Otherwise bf16 where the CPU has bf16 instructions (faster than fp32); elsewhere fp32 (the
+// reference), and bf16 (widened weights, half the memory) only when fp32 would not fit 80% of the available memory.
 PrecisionChoice choose_precision(const MachineProbe& machine, const std::string& model_id,
                                  std::optional<int64_t> parameters, const std::string& asked);
 

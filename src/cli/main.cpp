@@ -1,11 +1,35 @@
 // Entry point of the `tether` binary: dispatches to one verb per file, maps errors to one-line messages.
 #include <cstdio>
+#include <cstdlib>
+#include <exception>
 #include <iostream>
+#include <string>
 
 #include "cli/commands.h"
 #include "core/error.h"
 
-int main(int argc, char** argv) {
+namespace {
+
+// Last line of defence for an exception that escapes a thread (a server worker, an OpenMP region): the usual
+// one-line error and exit code instead of std::terminate's abort and core dump.
+[[noreturn]] void on_terminate() {
+  std::string what = "unknown exception";
+  if (const std::exception_ptr e = std::current_exception()) {
+    try {
+      std::rethrow_exception(e);
+    } catch (const std::exception& ex) {
+      what = ex.what();
+    } catch (...) {
+    }
+  }
+  std::fprintf(stderr, "error: internal: %s\n", what.c_str());
+  std::_Exit(tether::cli::kExitCheckFailed);
+}
+
+}  // namespace
+
+int main(int argc, char** argv) try {
+  std::set_terminate(on_terminate);
   CLI::App app{"tether: deploy Vision-Language-Action robot policies"};
   app.require_subcommand(1);
   // Usage errors are one line, like every other error of the binary.
@@ -41,4 +65,7 @@ int main(int argc, char** argv) {
     return tether::cli::kExitCheckFailed;
   }
   return tether::cli::kExitUsage;
+} catch (const std::exception& e) {  // while setting up the verbs, before any of them runs
+  std::cerr << "error: " << e.what() << "\n";
+  return tether::cli::kExitCheckFailed;
 }

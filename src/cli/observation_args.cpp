@@ -23,19 +23,21 @@ std::vector<float> parse_floats(const std::string& text, const std::string& flag
 }
 
 void add_precision_flag(CLI::App* sub, std::string& value) {
-  sub->add_option("--precision", value, "fp32 (reference) or bf16 (bf16 weights and GEMM inputs, float32 accumulation)")
-      ->check(CLI::IsMember({"fp32", "bf16"}))
+  sub->add_option("--precision", value,
+                  "fp32 (reference), bf16 or fp16 (half-size weights; bf16 GEMM where the CPU has bf16 instructions, "
+                  "otherwise weights widened to fp32 in the kernel)")
+      ->check(CLI::IsMember({"fp32", "bf16", "fp16"}))
       ->capture_default_str();
 }
 
 models::LoadOptions load_options(const std::string& precision) {
   models::LoadOptions o;
-  o.precision = precision == "bf16" ? cpu::Precision::bf16 : cpu::Precision::fp32;
+  o.precision = cpu::parse_precision(precision);
   return o;
 }
 
 std::string inference_mode(const models::ModelSpec& spec) {
-  return std::string("cpu-") + cpu::precision_name(spec.precision);
+  return std::string("cpu-") + cpu::compute_mode(spec.precision);
 }
 
 namespace {

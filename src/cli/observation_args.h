@@ -27,7 +27,8 @@ std::vector<float> parse_floats(const std::string& text, const std::string& flag
 // --precision fp32|bf16, shared by the verbs that load a model.
 void add_precision_flag(CLI::App* sub, std::string& value);
 models::LoadOptions load_options(const std::string& precision);
-// "cpu-fp32", "cpu-bf16": what inference actually ran in.
+// What inference actually ran in: "cpu-fp32", "cpu-bf16" (native bf16 GEMM), "cpu-bf16-weights" /
+// "cpu-fp16-weights" (half-size weights widened to fp32 in the kernel).
 std::string inference_mode(const models::ModelSpec& spec);
 
 }  // namespace tether::cli

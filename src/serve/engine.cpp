@@ -4,7 +4,7 @@
 
 #include <filesystem>
 
-#include "backend/cpu/gemm.h"
+#include "backend/cpu/packed_linear.h"
 #include "core/hash.h"
 
 namespace tether::serve {
@@ -15,8 +15,9 @@ Engine load_policy_engine(const std::string& checkpoint_dir, const models::LoadO
   e.spec = p->spec();
   e.load_warnings = p->load_warnings();
   e.normalization = p->input_normalizer().describe();
-  e.gemm = cpu::blas_name();
+  e.gemm = cpu::gemm_name(p->spec().precision);
   e.precision = cpu::precision_name(p->spec().precision);
+  e.compute = cpu::compute_mode(p->spec().precision);
   const auto weights = std::filesystem::path(checkpoint_dir) / "model.safetensors";
   e.model_hash = "sha256:" + sha256_file_hex(weights.string());
   e.model_name = std::filesystem::path(checkpoint_dir).lexically_normal().filename().string();

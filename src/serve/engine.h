@@ -22,6 +22,7 @@ struct Engine {
   // True when the checkpoint has no action stats: its output is in the model's normalised range, not robot units.
   bool actions_normalized = false;
   std::string backend = "cpu", precision = "fp32", gemm;
+  std::string compute = "fp32";  // cpu::compute_mode: what the linear layers really ran in
 };
 
 // Loads the checkpoint directory with Policy::load and hashes its weights file.

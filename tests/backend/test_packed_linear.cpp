@@ -1,10 +1,12 @@
-// PackedLinear: oneDNN matmul with weights packed once, against a double-precision reference, fp32 and bf16.
+// PackedLinear on every precision and whichever path this CPU takes for it (oneDNN, or the panel GEMM with widened
+// weights), against a double-precision reference.
 #include <gtest/gtest.h>
 
 #include <cmath>
 #include <random>
 #include <vector>
 
+#include "backend/cpu/cpu_features.h"
 #include "backend/cpu/packed_linear.h"
 #include "core/dtype.h"
 
@@ -20,15 +22,21 @@ std::vector<float> random_vec(std::size_t n, std::mt19937& g) {
   return v;
 }
 
-// y = x W^T + b (+ y0), in double; `round` rounds x and W to bf16 first, as the bf16 path does.
+double bf16_round(float v) { return bf16_to_f32(f32_to_bf16(v)); }
+double f16_round(float v) { return f16_to_f32(f32_to_f16(v)); }
+double exact(float v) { return v; }
+
+// y = x W^T + b (+ y0), in double, with x and W rounded as the path rounds them.
 std::vector<double> reference(const std::vector<float>& x, const std::vector<float>& w, const std::vector<float>& b,
-                              const std::vector<float>& y0, int64_t m, int64_t n, int64_t k, bool round) {
-  auto r = [&](float v) { return round ? double(bf16_to_f32(f32_to_bf16(v))) : double(v); };
+                              const std::vector<float>& y0, int64_t m, int64_t n, int64_t k, Precision prec) {
+  const LinearPath path = linear_path(prec);
+  double (*rx)(float) = path == LinearPath::onednn_bf16 ? bf16_round : exact;  // only native bf16 rounds inputs
+  double (*rw)(float) = prec == Precision::bf16 ? bf16_round : prec == Precision::fp16 ? f16_round : exact;
   std::vector<double> y(std::size_t(m * n));
   for (int64_t i = 0; i < m; ++i)
     for (int64_t j = 0; j < n; ++j) {
       double acc = b.empty() ? 0.0 : b[j];
-      for (int64_t t = 0; t < k; ++t) acc += r(x[i * k + t]) * r(w[j * k + t]);
+      for (int64_t t = 0; t < k; ++t) acc += rx(x[i * k + t]) * rw(w[j * k + t]);
       y[i * n + j] = acc + (y0.empty() ? 0.0 : y0[i * n + j]);
     }
   return y;
@@ -41,8 +49,8 @@ TEST(PackedLinear, MatchesReferenceAcrossShapesAndModes) {
   struct Shape {
     int64_t m, n, k;
   };
-  for (const Shape s : {Shape{1, 7, 5}, Shape{50, 96, 72}, Shape{241, 64, 96}, Shape{3, 130, 33}}) {
-    for (Precision prec : {Precision::fp32, Precision::bf16}) {
+  for (const Shape s : {Shape{1, 7, 5}, Shape{50, 96, 72}, Shape{241, 64, 96}, Shape{3, 130, 33}, Shape{13, 40, 600}}) {
+    for (Precision prec : {Precision::fp32, Precision::bf16, Precision::fp16}) {
       for (bool with_bias : {false, true}) {
         for (bool accumulate : {false, true}) {
           const auto x = random_vec(std::size_t(s.m * s.k), g), w = random_vec(std::size_t(s.n * s.k), g);
@@ -52,11 +60,11 @@ TEST(PackedLinear, MatchesReferenceAcrossShapesAndModes) {
           lin.pack(w.data(), s.n, s.k, with_bias ? b.data() : nullptr, prec);
           std::vector<float> y = accumulate ? y0 : std::vector<float>(std::size_t(s.m * s.n), 123.f);
           lin.forward(x.data(), s.m, y.data(), accumulate);
-          const auto want = reference(x, w, b, y0, s.m, s.n, s.k, prec == Precision::bf16);
+          const auto want = reference(x, w, b, y0, s.m, s.n, s.k, prec);
           double diff = 0;
           for (std::size_t i = 0; i < y.size(); ++i) diff = std::max(diff, std::fabs(double(y[i]) - want[i]));
-          // bf16 inputs are exact after rounding; only the float32 accumulation order differs from the reference.
-          EXPECT_LT(diff, 2e-5 * std::sqrt(double(s.k))) << precision_name(prec) << " m=" << s.m << " n=" << s.n
+          // Rounded inputs are exact; only the float32 accumulation order differs from the reference.
+          EXPECT_LT(diff, 2e-5 * std::sqrt(double(s.k))) << precision_name(prec) << " (" << compute_mode(prec) << ")" << " m=" << s.m << " n=" << s.n
                                                          << " k=" << s.k << " bias=" << with_bias << " acc=" << accumulate;
         }
       }
@@ -68,15 +76,29 @@ TEST(PackedLinear, WritesIntoAWiderBuffer) {
   std::mt19937 g(3);
   const int64_t m = 4, n = 6, k = 8, ldy = 10;
   const auto x = random_vec(m * k, g), w = random_vec(n * k, g);
-  PackedLinear lin;
-  lin.pack(w.data(), n, k, nullptr, Precision::fp32);
-  std::vector<float> y(std::size_t(m * ldy), -7.f);
-  lin.forward(x.data(), m, y.data(), false, ldy);
-  const auto want = reference(x, w, {}, {}, m, n, k, false);
-  for (int64_t i = 0; i < m; ++i) {
-    for (int64_t j = 0; j < n; ++j) EXPECT_NEAR(y[i * ldy + j], want[i * n + j], 1e-5);
-    for (int64_t j = n; j < ldy; ++j) EXPECT_EQ(y[i * ldy + j], -7.f);  // columns past n untouched
+  for (Precision prec : {Precision::fp32, Precision::bf16, Precision::fp16}) {
+    PackedLinear lin;
+    lin.pack(w.data(), n, k, nullptr, prec);
+    std::vector<float> y(std::size_t(m * ldy), -7.f);
+    lin.forward(x.data(), m, y.data(), false, ldy);
+    const auto want = reference(x, w, {}, {}, m, n, k, prec);
+    for (int64_t i = 0; i < m; ++i) {
+      for (int64_t j = 0; j < n; ++j) EXPECT_NEAR(y[i * ldy + j], want[i * n + j], 1e-5) << precision_name(prec);
+      for (int64_t j = n; j < ldy; ++j) EXPECT_EQ(y[i * ldy + j], -7.f);  // columns past n untouched
+    }
   }
+}
+
+TEST(PackedLinear, PathFollowsTheCpu) {
+  // bf16 is native exactly where the (capped) CPU and oneDNN both have bf16 instructions; fp16 always widens.
+  EXPECT_EQ(linear_path(Precision::fp32), cpu_paths().fp32_panel ? LinearPath::panel_f32 : LinearPath::onednn_f32);
+  EXPECT_EQ(linear_path(Precision::bf16), cpu_paths().native_bf16 ? LinearPath::onednn_bf16 : LinearPath::panel_bf16);
+  EXPECT_EQ(linear_path(Precision::fp16), LinearPath::panel_f16);
+  if (cpu_paths().effective < CpuIsa::avx512_bf16) {
+    EXPECT_FALSE(cpu_paths().native_bf16);
+  }
+  EXPECT_EQ(parse_precision("fp16"), Precision::fp16);
+  EXPECT_THROW(parse_precision("int3"), std::exception);
 }
 
 TEST(PackedLinear, RejectsMisuse) {

@@ -24,6 +24,7 @@ MachineProbe machine_with(int64_t available_bytes) {
   m.cores = 8;
   m.memory_total = 2 * available_bytes;
   m.memory_available = available_bytes;
+  m.isa = "avx2";
   return m;
 }
 
@@ -70,11 +71,13 @@ TEST(HardwareProbe, PrecisionIsFp32UnlessAskedOrTooBig) {
   const MachineProbe m = machine_with(int64_t(16'000'000'000));
   PrecisionChoice c = choose_precision(m, "tiny", int64_t(1'000'000), "");
   EXPECT_EQ(c.precision, "fp32");
-  EXPECT_EQ(c.reason, "precision fp32 (the reference): tiny needs about 5.0 MB, 16.0 GB available");
+  EXPECT_EQ(c.reason, "precision fp32 (the reference): tiny needs about 5.0 MB, 16.0 GB available; bf16 would be "
+                      "no faster on this CPU (avx2, no bf16 instructions)");
   // 3.3B parameters need ~16.5 GB in fp32: more than 80% of 16 GB.
   c = choose_precision(m, "pi0", int64_t(3'300'000'000), "");
   EXPECT_EQ(c.precision, "bf16");
-  EXPECT_EQ(c.reason, "pi0 does not fit in fp32 here (16.0 GB available): using bf16");
+  EXPECT_EQ(c.reason, "pi0 does not fit in fp32 here (16.0 GB available): using bf16 weights, widened to fp32 in the "
+                      "kernel (half the memory)");
   c = choose_precision(m, "pi0", int64_t(3'300'000'000), "fp16");
   EXPECT_EQ(c.precision, "fp16");
   EXPECT_EQ(c.reason, "precision fp16: asked with --precision");
@@ -84,6 +87,16 @@ TEST(HardwareProbe, PrecisionIsFp32UnlessAskedOrTooBig) {
   c = choose_precision(machine_with(-1), "x", int64_t(1'000'000'000'000), "");
   EXPECT_EQ(c.precision, "fp32");
   EXPECT_NE(c.reason.find("available memory unknown"), std::string::npos);
+}
+
+TEST(HardwareProbe, NativeBf16IsPickedForSpeed) {
+  MachineProbe m = machine_with(int64_t(16'000'000'000));
+  m.native_bf16 = true;
+  m.isa = "avx512_bf16";
+  const PrecisionChoice c = choose_precision(m, "tiny", int64_t(1'000'000), "");
+  EXPECT_EQ(c.precision, "bf16");
+  EXPECT_EQ(c.reason.rfind("precision bf16: this CPU (avx512_bf16) runs bf16 GEMMs natively", 0), 0u) << c.reason;
+  EXPECT_EQ(choose_precision(m, "tiny", int64_t(1'000'000), "fp32").precision, "fp32");
 }
 
 TEST(HardwareProbe, RealProbeOfThisMachine) {

@@ -5,6 +5,7 @@
 #include <filesystem>
 #include <fstream>
 
+#include "backend/cpu/packed_linear.h"
 #include "cli_runner.h"
 #include "core/json_util.h"
 #include "core/safetensors.h"
@@ -53,7 +54,10 @@ TEST(PredictCli, Bf16ModeIsReportedAndClose) {
   ASSERT_EQ(r.code, 0) << r.err;
   const Json bf16 = Json::parse(r.out);
   EXPECT_EQ(f32["inference_mode"], "cpu-fp32");
-  EXPECT_EQ(bf16["inference_mode"], "cpu-bf16");
+  // Native bf16 GEMM where this CPU has bf16 instructions, bf16 weights widened in the kernel elsewhere.
+  EXPECT_EQ(bf16["inference_mode"], std::string("cpu-") + cpu::compute_mode(cpu::Precision::bf16));
+  const Json fp16 = Json::parse(run_tether("predict " + kGood + " --seed 4 --json --precision fp16").out);
+  EXPECT_EQ(fp16["inference_mode"], "cpu-fp16-weights");
   double diff = 0, scale = 0;
   for (std::size_t i = 0; i < 50; ++i)
     for (std::size_t j = 0; j < 6; ++j) {
@@ -62,7 +66,35 @@ TEST(PredictCli, Bf16ModeIsReportedAndClose) {
     }
   EXPECT_GT(diff, 0.0);
   EXPECT_LT(diff, 0.02 * scale);
+  double diff16 = 0;
+  for (std::size_t i = 0; i < 50; ++i)
+    for (std::size_t j = 0; j < 6; ++j)
+      diff16 = std::max(diff16, std::fabs(f32["actions"][i][j].get<double>() - fp16["actions"][i][j].get<double>()));
+  EXPECT_GT(diff16, 0.0);
+  EXPECT_LT(diff16, 0.02 * scale);
   EXPECT_EQ(run_tether("predict " + kGood + " --precision fp8").code, 2);
+}
+
+TEST(PredictCli, SameBitsOnEveryDispatchLevel) {
+  // fp32 and the widened half-precision paths run fixed-order chains in every product, so capping the dispatch
+  // (as on an older CPU) changes no bit of the chunk. Native bf16 (oneDNN) is the one path outside this.
+  for (const char* precision : {"fp32", "fp16"}) {
+    const std::string args = "predict " + kGood + " --seed 9 --json --precision " + precision;
+    const CliRun native = run_tether(args);
+    ASSERT_EQ(native.code, 0) << native.err;
+    for (const char* cap : {"AVX2", "AVX512_CORE"}) {
+      ::setenv("TETHER_MAX_CPU_ISA", cap, 1);
+      const CliRun capped = run_tether(args);
+      ::unsetenv("TETHER_MAX_CPU_ISA");
+      ASSERT_EQ(capped.code, 0) << capped.err;
+      EXPECT_EQ(Json::parse(capped.out)["actions"], Json::parse(native.out)["actions"]) << precision << " at " << cap;
+    }
+  }
+  ::setenv("TETHER_MAX_CPU_ISA", "AVX9", 1);
+  const CliRun bad = run_tether("predict " + kGood + " --seed 9");
+  ::unsetenv("TETHER_MAX_CPU_ISA");
+  EXPECT_EQ(bad.code, 2);
+  EXPECT_NE(bad.err.find("TETHER_MAX_CPU_ISA='AVX9' is not one of"), std::string::npos) << bad.err;
 }
 
 TEST(PredictCli, ExplicitNoiseFile) {

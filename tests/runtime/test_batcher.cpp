@@ -114,12 +114,9 @@ TEST(Batcher, MaxBatchSplitsLargeBursts) {
 TEST(Batcher, LoneRequestRunsWhenTheWindowCloses) {
   FakeModel model;
   Batcher batcher(wrap(model), {.max_batch = 8, .batch_timeout_ms = 20, .max_queue = 64});
-  const auto t0 = Clock::now();
   const BatchResult r = batcher.submit(obs(1, 1), far()).get();
-  const double waited = std::chrono::duration<double, std::milli>(Clock::now() - t0).count();
   EXPECT_EQ(r.batch_size, 1);
-  EXPECT_GE(r.queue_ms, 15.0);
-  EXPECT_LT(waited, 2000.0);
+  EXPECT_GE(r.queue_ms, 15.0);  // it waited for the window (a sleep never ends early, however loaded the machine)
 }
 
 TEST(Batcher, FullQueueFailsImmediately) {
@@ -133,15 +130,15 @@ TEST(Batcher, FullQueueFailsImmediately) {
   auto second = batcher.submit(obs(1, 1), far());
   auto third = batcher.submit(obs(2, 2), far());
   EXPECT_EQ(batcher.queue_depth(), 2);
-  const auto t0 = Clock::now();
+  // The refusal is synchronous: submit throws instead of handing back a future that would wait for space
+  // (the first request still holds the worker, so a waiting submit could only have succeeded).
   try {
     batcher.submit(obs(3, 3), far());
     FAIL() << "submit into a full queue succeeded";
   } catch (const BatchError& e) {
     EXPECT_EQ(e.kind(), BatchError::Kind::queue_full);
   }
-  const double took_ms = std::chrono::duration<double, std::milli>(Clock::now() - t0).count();
-  EXPECT_LT(took_ms, 50.0) << "did not fail at once";
+  EXPECT_EQ(batcher.queue_depth(), 2);
   EXPECT_EQ(first.get().batch_size, 1);
   EXPECT_EQ(second.get().chunk.actions, FakeModel::expected(obs(1, 1)));
   EXPECT_EQ(third.get().chunk.actions, FakeModel::expected(obs(2, 2)));

@@ -232,10 +232,12 @@ TEST(GoCli, MissingDownloadSaysHowToGetIt) {
 
 TEST(GoCli, ServesTheBundledDemo) {
   // go exports the model into the Tether cache (keyed by version and precision), verifies it, then serves it.
+  // Capped at AVX2 so go picks fp32 on every CPU (with native bf16 it would pick bf16).
   const auto tether_cache = temp_dir("tether_cache");
   const auto export_dir = tether_cache / "exports" / TETHER_VERSION_STR / "smolvla-demo-fp32";
   {
-    ServeProcess server({"go", "--model", "smolvla-demo", "--port", "0"}, {"TETHER_CACHE=" + tether_cache.string()});
+    ServeProcess server({"go", "--model", "smolvla-demo", "--port", "0"},
+                        {"TETHER_CACHE=" + tether_cache.string(), "TETHER_MAX_CPU_ISA=AVX2"});
     wait_ready(server.port());
     const HttpReply r = http_post(server.port(), "/act", act_body(5));
     ASSERT_EQ(r.status, 200) << r.body;
@@ -245,7 +247,8 @@ TEST(GoCli, ServesTheBundledDemo) {
   ASSERT_TRUE(std::filesystem::exists(export_dir / "VERIFICATION.md"));
   const auto first = std::filesystem::last_write_time(export_dir / "model.safetensors");
   {  // A second start reuses the export; a stale one (another Tether version) would be rebuilt.
-    ServeProcess again({"go", "--model", "smolvla-demo", "--port", "0"}, {"TETHER_CACHE=" + tether_cache.string()});
+    ServeProcess again({"go", "--model", "smolvla-demo", "--port", "0"},
+                       {"TETHER_CACHE=" + tether_cache.string(), "TETHER_MAX_CPU_ISA=AVX2"});
     wait_ready(again.port());
     EXPECT_EQ(again.terminate(), 0);
   }

@@ -1,19 +1,21 @@
-// Masked grouped-query attention: per (batch, head, block of queries) one BLAS product for the scores,
-// a scale/mask/softmax pass, and one BLAS product with V, in the order lerobot's eager attention uses.
+// Masked grouped-query attention: per (batch, head, block of queries) one product for the scores, a scale/mask/softmax
+// pass, and one product with V, in the order lerobot's eager attention uses. Both products are the panel kernel's
+// fixed-order chains: a masked key adds exact zeros, so an item's result does not depend on how far its batch-mates
+// pad the sequence, nor on the CPU's vector width.
 
 #include <algorithm>
 #include <limits>
 #include <string>
 #include <vector>
 
-#include "backend/cpu/gemm.h"
+#include "backend/cpu/panel_gemm.h"
 #include "backend/cpu/kernels.h"
 #include "core/error.h"
 
 namespace tether::cpu {
 namespace {
 
-// Each BLAS call packs the whole K (or V) of its head, so blocks must be tall enough to amortise that
+// Each product packs the whole K (or V) of its head, so blocks must be tall enough to amortise that
 // (32-row blocks measured ~20% slower than 128 on the 241-token prefix); 128 x 1024 scores fit in L2.
 constexpr int64_t kQueryBlock = 128;
 
@@ -42,9 +44,8 @@ void attention(const float* q, int64_t q_stride, const float* k, const float* v,
 
   const int64_t groups = heads / kv_heads;
   const int64_t out_stride = heads * head_dim;
-  // Tasks are (item, head, block of queries). The block size depends on nothing but len_q: BLAS results
-  // depend on where a row falls in the product (edge kernels sum in another order), so a block layout
-  // that varied with the batch size or the thread count would make an item's output depend on them.
+  // Tasks are (item, head, block of queries); each row's chains are the same in any block, so the layout only
+  // trades packing cost against parallelism.
   const int64_t block = std::min<int64_t>(len_q, kQueryBlock);
   const int64_t blocks = (len_q + block - 1) / block;
   const int64_t tasks = batch * heads * blocks;
@@ -57,30 +58,29 @@ void attention(const float* q, int64_t q_stride, const float* k, const float* v,
     const int64_t h = (task / blocks) % heads;
     const int64_t q0 = (task % blocks) * block;
     const int rows = int(std::min(block, len_q - q0));
-    // Scores for one block, reused across calls; BLAS inside a parallel region runs single-threaded.
+    // Scores for one block, reused across calls; a product inside the parallel region runs single-threaded.
     thread_local std::vector<float> scores;
     if (scores.size() < std::size_t(block * len_k)) scores.resize(std::size_t(block * len_k));
     float* s = scores.data();
     const float* qp = q + (b * len_q + q0) * q_stride + h * head_dim;
     const float* kp = k + b * len_k * kv_stride + (h / groups) * head_dim;
     const float* vp = v + b * len_k * kv_stride + (h / groups) * head_dim;
-    // Inside the parallel region the GEMM library runs single-threaded (nested parallelism is off).
-    gemm(false, true, rows, len_k, head_dim, 1.0f, qp, q_stride, kp, kv_stride, 0.0f, s, len_k);
+    detail::gemm_fixed_order(rows, len_k, head_dim, qp, q_stride, kp, kv_stride, /*trans_b=*/true, s, len_k);
     for (int r = 0; r < rows; ++r) {
       float* sr = s + r * len_k;
       // The scale multiplies the finished dot products (not q), as upstream does.
-      if (mask) {
-        const uint8_t* mr = mask + (b * len_q + q0 + r) * len_k;
+      const uint8_t* mr = mask ? mask + (b * len_q + q0 + r) * len_k : nullptr;
+      if (mr) {
 #pragma omp simd
         for (int64_t j = 0; j < len_k; ++j) sr[j] = mr[j] ? sr[j] * scale : kMasked;
       } else {
 #pragma omp simd
         for (int64_t j = 0; j < len_k; ++j) sr[j] = sr[j] * scale;
       }
-      softmax_row(sr, len_k);
+      softmax_row(sr, len_k, mr);
     }
-    gemm(false, false, rows, head_dim, len_k, 1.0f, s, len_k, vp, kv_stride, 0.0f,
-         out + (b * len_q + q0) * out_stride + h * head_dim, out_stride);
+    detail::gemm_fixed_order(rows, head_dim, len_k, s, len_k, vp, kv_stride, /*trans_b=*/false,
+                             out + (b * len_q + q0) * out_stride + h * head_dim, out_stride);
   }
 }
 

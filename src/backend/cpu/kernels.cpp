@@ -12,6 +12,7 @@
 #include <vector>
 
 #include "backend/cpu/gemm.h"
+#include "backend/cpu/panel_gemm.h"
 #include "backend/cpu/vec_math.h"
 #include "core/error.h"
 
@@ -157,16 +158,33 @@ void softmax_rows(float* x, int64_t rows, int64_t n) {
   for (int64_t r = 0; r < rows; ++r) softmax_row(x + r * n, n);
 }
 
-void softmax_row(float* x, int64_t n) {
+float lane_sum(const float* x, int64_t n) {
+  float lanes[8] = {};
+  int64_t i = 0;
+  for (; i + 8 <= n; i += 8)
+    for (int l = 0; l < 8; ++l) lanes[l] += x[i + l];
+  for (int l = 0; i + l < n; ++l) lanes[l] += x[i + l];
+  return ((lanes[0] + lanes[1]) + (lanes[2] + lanes[3])) + ((lanes[4] + lanes[5]) + (lanes[6] + lanes[7]));
+}
+
+void softmax_row(float* x, int64_t n, const uint8_t* keep) {
   float mx = x[0];
 #pragma omp simd reduction(max : mx)
   for (int64_t i = 0; i < n; ++i) mx = x[i] > mx ? x[i] : mx;
-  float sum = 0.0f;
-#pragma omp simd reduction(+ : sum)
-  for (int64_t i = 0; i < n; ++i) {
-    const float e = detail::exp_f32(x[i] - mx);
-    x[i] = e;
-    sum += e;
+#pragma omp simd
+  for (int64_t i = 0; i < n; ++i) x[i] = detail::exp_f32(x[i] - mx);
+  // Lanes follow each kept entry's rank among the kept ones, not its position: masked padding anywhere in the row
+  // (masked entries are exact zeros here) leaves every lane's sum, and so the result, unchanged.
+  float sum;
+  if (keep) {
+    thread_local std::vector<float> kept;
+    if (kept.size() < std::size_t(n)) kept.resize(std::size_t(n));
+    int64_t count = 0;
+    for (int64_t i = 0; i < n; ++i)
+      if (keep[i]) kept[std::size_t(count++)] = x[i];
+    sum = count > 0 ? lane_sum(kept.data(), count) : lane_sum(x, n);
+  } else {
+    sum = lane_sum(x, n);
   }
   const float inv = 1.0f / sum;
 #pragma omp simd
@@ -250,7 +268,9 @@ void patch_embed(const float* pixels, int64_t batch, int64_t channels, int64_t h
         }
       }
     }
-    linear(col, patches, col_len, weight, bias, embed, out + b * patches * embed);
+    // The panel kernel's fixed-order chains, like every other product: the same bits on every CPU.
+    detail::gemm_fixed_order(patches, embed, col_len, col, col_len, weight, col_len, /*trans_b=*/true,
+                             out + b * patches * embed, embed, bias);
   }
 }
 

@@ -29,8 +29,14 @@ void attention(const float* q, int64_t q_stride, const float* k, const float* v,
 // Softmax over each row of length n, in place: exp(x - max) / sum, with the sum's reciprocal applied as
 // a multiply. A row of equal values (e.g. all masked) becomes uniform.
 void softmax_rows(float* x, int64_t rows, int64_t n);
-// One row, single-threaded (for callers already inside a parallel region).
-void softmax_row(float* x, int64_t n);
+// One row, single-threaded (for callers already inside a parallel region). With `keep` (nonzero = a real key), the
+// sum runs over the kept entries alone, in order (masked ones are exact zeros), so masked padding anywhere in the
+// row, as batching adds it, cannot change the result; a row with nothing kept is uniform.
+void softmax_row(float* x, int64_t n, const uint8_t* keep = nullptr);
+
+// Sum of x[0, n) over 8 fixed lanes (element i in lane i % 8) joined by a fixed tree: vectorised, the same on every
+// ISA, and unchanged by trailing zeros.
+float lane_sum(const float* x, int64_t n);
 
 // Activations, in place. gelu_tanh is PyTorch's GELU(approximate="tanh") (transformers'
 // "gelu_pytorch_tanh"); silu is x * sigmoid(x). Both are within a few ulp of the exact functions.

@@ -1,11 +1,14 @@
 #include "backend/cpu/packed_linear.h"
 
+#include <algorithm>
 #include <map>
 #include <tuple>
 #include <oneapi/dnnl/dnnl.hpp>
 #include <string>
 #include <vector>
 
+#include "backend/cpu/cpu_features.h"
+#include "backend/cpu/panel_gemm.h"
 #include "core/dtype.h"
 #include "core/error.h"
 
@@ -18,7 +21,8 @@ using dt = memory::data_type;
 using tag = memory::format_tag;
 
 dnnl::engine& cpu_engine() {
-  static dnnl::engine engine(dnnl::engine::kind::cpu, 0);
+  // cpu_paths() first: it applies the ISA cap, which oneDNN reads before its first primitive.
+  static dnnl::engine engine = (cpu_paths(), dnnl::engine(dnnl::engine::kind::cpu, 0));
   return engine;
 }
 
@@ -33,12 +37,74 @@ constexpr int64_t kLayoutRows = 64;
 
 }  // namespace
 
-const char* precision_name(Precision p) { return p == Precision::bf16 ? "bf16" : "fp32"; }
+const char* precision_name(Precision p) {
+  return p == Precision::bf16 ? "bf16" : p == Precision::fp16 ? "fp16" : "fp32";
+}
+
+Precision parse_precision(const std::string& name) {
+  for (Precision p : {Precision::fp32, Precision::bf16, Precision::fp16})
+    if (name == precision_name(p)) return p;
+  throw Error(ErrorCode::invalid_argument, "precision '" + name + "' is not one of fp32, bf16, fp16");
+}
+
+LinearPath linear_path(Precision precision) {
+  switch (precision) {
+    case Precision::fp32: return cpu_paths().fp32_panel ? LinearPath::panel_f32 : LinearPath::onednn_f32;
+    case Precision::bf16: return cpu_paths().native_bf16 ? LinearPath::onednn_bf16 : LinearPath::panel_bf16;
+    case Precision::fp16: return LinearPath::panel_f16;  // oneDNN 2.6 has no f16 matmul below AVX512-FP16
+  }
+  return LinearPath::onednn_f32;
+}
+
+const char* compute_mode(Precision precision) {
+  switch (linear_path(precision)) {
+    case LinearPath::onednn_f32:
+    case LinearPath::panel_f32: return "fp32";
+    case LinearPath::onednn_bf16: return "bf16";
+    case LinearPath::panel_bf16: return "bf16-weights";
+    case LinearPath::panel_f16: return "fp16-weights";
+  }
+  return "?";
+}
+
+std::string gemm_name(Precision precision) {
+  const LinearPath path = linear_path(precision);
+  if (path == LinearPath::onednn_f32 || path == LinearPath::onednn_bf16) return "onednn";
+  return std::string("panel-") + detail::panel_kernel().name;
+}
+
+std::string compute_mode_description(Precision precision) {
+  const CpuPaths& c = cpu_paths();
+  const std::string kernel = detail::panel_kernel().name;
+  switch (linear_path(precision)) {
+    case LinearPath::onednn_f32: return "fp32 GEMM (oneDNN " + c.onednn_isa + ")";
+    case LinearPath::panel_f32: return "fp32 GEMM (" + kernel + " panel kernel, batch-invariant)";
+    case LinearPath::onednn_bf16:
+      return "native bf16 GEMM (oneDNN " + c.onednn_isa + "): bf16 weights and inputs, fp32 accumulation";
+    case LinearPath::panel_bf16:
+      return "bf16 weights widened to fp32 in the kernel (" + kernel + "): this CPU " +
+             (c.effective >= CpuIsa::avx512_bf16 ? "has bf16 instructions, but oneDNN runs at " + c.onednn_isa
+                                                 : std::string("has no bf16 instructions")) +
+             "; inputs and accumulation in fp32";
+    case LinearPath::panel_f16:
+      return "fp16 weights widened to fp32 in the kernel (" + kernel + "); inputs and accumulation in fp32";
+  }
+  return "?";
+}
 
 struct PackedLinear::Impl {
   int64_t n = 0, k = 0;
   Precision precision = Precision::fp32;
-  memory weights, bias;
+  LinearPath path = LinearPath::onednn_f32;
+  memory weights, bias;  // oneDNN paths
+  // Panel GEMM path: panels in the weight dtype, the bias zero-padded to whole panels.
+  std::vector<uint16_t> panels;
+  std::vector<float> panels_f32;
+  std::vector<float> panel_bias;
+  detail::PanelGemmFn panel_fn = nullptr;
+
+  bool onednn() const { return path == LinearPath::onednn_f32 || path == LinearPath::onednn_bf16; }
+  void pack_panels(const float* weight, const float* bias_in);
   struct Plan {
     dnnl::primitive prim;
     memory src, dst, scratchpad;
@@ -46,7 +112,7 @@ struct PackedLinear::Impl {
   mutable std::map<std::tuple<int64_t, bool, int64_t>, Plan> plans;  // (rows, accumulate, ldy) -> primitive
   mutable std::vector<uint16_t> x_bf16;                    // bf16 copy of the input rows
 
-  dt src_type() const { return precision == Precision::bf16 ? dt::bf16 : dt::f32; }
+  dt src_type() const { return path == LinearPath::onednn_bf16 ? dt::bf16 : dt::f32; }
 
   dnnl::matmul::primitive_desc describe(int64_t m, const memory::desc& weights_md, bool accumulate,
                                         int64_t ldy) const {
@@ -66,12 +132,17 @@ struct PackedLinear::Impl {
   const Plan& plan(int64_t m, bool accumulate, int64_t ldy) const {
     auto it = plans.find({m, accumulate, ldy});
     if (it != plans.end()) return it->second;
-    const auto pd = describe(m, weights.get_desc(), accumulate, ldy);
     Plan p;
-    p.prim = dnnl::matmul(pd);
-    p.src = memory(pd.src_desc(), cpu_engine(), DNNL_MEMORY_NONE);
-    p.dst = memory(pd.dst_desc(), cpu_engine(), DNNL_MEMORY_NONE);
-    p.scratchpad = memory(pd.scratchpad_desc(), cpu_engine());
+    try {
+      const auto pd = describe(m, weights.get_desc(), accumulate, ldy);
+      p.prim = dnnl::matmul(pd);
+      p.src = memory(pd.src_desc(), cpu_engine(), DNNL_MEMORY_NONE);
+      p.dst = memory(pd.dst_desc(), cpu_engine(), DNNL_MEMORY_NONE);
+      p.scratchpad = memory(pd.scratchpad_desc(), cpu_engine());
+    } catch (const dnnl::error& e) {
+      throw Error(ErrorCode::internal, "PackedLinear: oneDNN has no matmul for " + std::to_string(m) + " x [" +
+                                           std::to_string(n) + ", " + std::to_string(k) + "]: " + e.what());
+    }
     return plans.emplace(std::make_tuple(m, accumulate, ldy), std::move(p)).first->second;
   }
 };
@@ -81,6 +152,18 @@ PackedLinear::~PackedLinear() = default;
 PackedLinear::PackedLinear(PackedLinear&&) noexcept = default;
 PackedLinear& PackedLinear::operator=(PackedLinear&&) noexcept = default;
 
+void PackedLinear::Impl::pack_panels(const float* weight, const float* bias_in) {
+  const detail::PanelKernel& kernel = detail::panel_kernel();
+  const auto type = path == LinearPath::panel_bf16  ? detail::PanelType::bf16
+                    : path == LinearPath::panel_f16 ? detail::PanelType::f16
+                                                    : detail::PanelType::f32;
+  panel_fn = kernel.get(type);
+  if (type == detail::PanelType::f32) panels_f32 = detail::pack_f32_panels(weight, n, k, kernel.panel_width);
+  else panels = detail::pack_half_panels(weight, n, k, kernel.panel_width, type);
+  panel_bias = detail::pad_bias(bias_in, n, kernel.panel_width);
+}
+
+LinearPath PackedLinear::path() const { return impl_ ? impl_->path : LinearPath::onednn_f32; }
 int64_t PackedLinear::n() const { return impl_ ? impl_->n : 0; }
 int64_t PackedLinear::k() const { return impl_ ? impl_->k : 0; }
 
@@ -90,6 +173,12 @@ void PackedLinear::pack(const float* weight, int64_t n, int64_t k, const float* 
   impl->n = n;
   impl->k = k;
   impl->precision = precision;
+  impl->path = linear_path(precision);
+  if (!impl->onednn()) {
+    impl->pack_panels(weight, bias);
+    impl_ = std::move(impl);
+    return;
+  }
   try {
     // W is [n, k] row-major, i.e. the matmul's [k, n] weights with strides (1, k): format "ba".
     const memory::desc user_md({k, n}, dt::f32, tag::ba);
@@ -115,9 +204,14 @@ void PackedLinear::forward(const float* x, int64_t m, float* y, bool accumulate,
   const Impl& w = *impl_;
   if (ldy == 0) ldy = w.n;
   if (ldy < w.n) throw Error(ErrorCode::internal, "PackedLinear: output stride smaller than the row");
+  if (!w.onednn()) {
+    const void* panels = w.panels_f32.empty() ? static_cast<const void*>(w.panels.data()) : w.panels_f32.data();
+    w.panel_fn({x, m, w.k, w.k, panels, w.n, w.panel_bias.data(), y, ldy, accumulate});
+    return;
+  }
   const Impl::Plan& p = w.plan(m, accumulate, ldy);
   const void* src = x;
-  if (w.precision == Precision::bf16) {
+  if (w.path == LinearPath::onednn_bf16) {
     if (w.x_bf16.size() < std::size_t(m * w.k)) w.x_bf16.resize(std::size_t(m * w.k));
     uint16_t* dst = w.x_bf16.data();
     const int64_t total = m * w.k;

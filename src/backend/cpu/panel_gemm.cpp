@@ -1,0 +1,81 @@
+// Picks the panel GEMM kernel for this CPU, under the TETHER_MAX_CPU_ISA cap.
+#include "backend/cpu/panel_gemm.h"
+
+#include <algorithm>
+
+#include "core/dtype.h"
+
+namespace tether::cpu::detail {
+
+namespace {
+
+template <class T, class Convert>
+std::vector<T> pack_panels(const float* w, int64_t n, int64_t k, int nr, Convert convert) {
+  const int64_t num_panels = (n + nr - 1) / nr;
+  std::vector<T> out(std::size_t(num_panels * nr * k), T{});
+  for (int64_t row = 0; row < n; ++row) {
+    T* dst = out.data() + (row / nr) * k * nr + row % nr;
+    const float* src = w + row * k;
+    for (int64_t i = 0; i < k; ++i) dst[i * nr] = convert(src[i]);
+  }
+  return out;
+}
+
+}  // namespace
+
+std::vector<float> pack_f32_panels(const float* w, int64_t n, int64_t k, int nr) {
+  return pack_panels<float>(w, n, k, nr, [](float v) { return v; });
+}
+
+std::vector<uint16_t> pack_half_panels(const float* w, int64_t n, int64_t k, int nr, PanelType type) {
+  if (type == PanelType::bf16) return pack_panels<uint16_t>(w, n, k, nr, [](float v) { return f32_to_bf16(v); });
+  return pack_panels<uint16_t>(w, n, k, nr, [](float v) { return f32_to_f16(v); });
+}
+
+std::vector<float> pad_bias(const float* bias, int64_t n, int nr) {
+  std::vector<float> out(std::size_t((n + nr - 1) / nr * nr), 0.0f);
+  if (bias) std::copy(bias, bias + n, out.begin());
+  return out;
+}
+
+void gemm_fixed_order(int64_t m, int64_t n, int64_t k, const float* a, int64_t lda, const float* b, int64_t ldb,
+                      bool trans_b, float* c, int64_t ldc, const float* bias) {
+  if (m <= 0 || n <= 0) return;
+  const PanelKernel& kernel = panel_kernel();
+  const int64_t nr = kernel.panel_width, num_panels = (n + nr - 1) / nr;
+  thread_local std::vector<float> panels, padded_bias;
+  if (panels.size() < std::size_t(num_panels * nr * k)) panels.resize(std::size_t(num_panels * nr * k));
+  if (padded_bias.size() < std::size_t(num_panels * nr)) padded_bias.resize(std::size_t(num_panels * nr));
+  if (bias) std::copy(bias, bias + n, padded_bias.begin());
+  std::fill(padded_bias.begin() + (bias ? n : 0), padded_bias.end(), 0.0f);
+  for (int64_t p = 0; p < num_panels; ++p) {
+    float* dst = panels.data() + p * k * nr;
+    const int64_t cols = std::min(nr, n - p * nr);
+    for (int64_t q = 0; q < k; ++q) {
+      float* row = dst + q * nr;
+      if (trans_b) {
+        for (int64_t j = 0; j < cols; ++j) row[j] = b[(p * nr + j) * ldb + q];
+      } else {
+        std::copy(b + q * ldb + p * nr, b + q * ldb + p * nr + cols, row);
+      }
+      std::fill(row + cols, row + nr, 0.0f);
+    }
+  }
+  kernel.f32({a, m, k, lda, panels.data(), n, padded_bias.data(), c, ldc, false});
+}
+
+std::vector<const PanelKernel*> panel_kernels() {
+  std::vector<const PanelKernel*> out;
+  const CpuIsa isa = cpu_paths().effective;
+  if (isa >= CpuIsa::avx512 && panel_kernel_avx512()) out.push_back(panel_kernel_avx512());
+  if (isa >= CpuIsa::avx2 && panel_kernel_avx2()) out.push_back(panel_kernel_avx2());
+  out.push_back(panel_kernel_portable());
+  return out;
+}
+
+const PanelKernel& panel_kernel() {
+  static const PanelKernel* const kernel = panel_kernels().front();
+  return *kernel;
+}
+
+}  // namespace tether::cpu::detail

@@ -1,0 +1,40 @@
+// The panel GEMM on AVX2 + FMA + F16C (x86-64-v3, the build's baseline): 6 rows x 16 columns per tile.
+#if defined(__x86_64__)
+#include <immintrin.h>
+
+#include "backend/cpu/panel_gemm_impl.h"
+
+namespace tether::cpu::detail {
+namespace {
+
+struct Avx2 {
+  using reg = __m256;
+  static constexpr int width = 8, rows = 6;  // 12 accumulators + 2 weight vectors + 1 broadcast of 16 registers
+  static reg zero() { return _mm256_setzero_ps(); }
+  static reg load(const float* p) { return _mm256_loadu_ps(p); }
+  static void store(float* p, reg v) { _mm256_storeu_ps(p, v); }
+  static reg broadcast(float v) { return _mm256_set1_ps(v); }
+  static reg fma(reg a, reg b, reg c) { return _mm256_fmadd_ps(a, b, c); }
+  static reg add(reg a, reg b) { return _mm256_add_ps(a, b); }
+  static reg widen(const float* p) { return _mm256_loadu_ps(p); }
+  static reg widen(const uint16_t* p) {  // bf16 is the top half of a float32
+    const __m256i w = _mm256_cvtepu16_epi32(_mm_loadu_si128(reinterpret_cast<const __m128i*>(p)));
+    return _mm256_castsi256_ps(_mm256_slli_epi32(w, 16));
+  }
+  static reg widen(const F16* p) { return _mm256_cvtph_ps(_mm_loadu_si128(reinterpret_cast<const __m128i*>(p))); }
+};
+
+using Gemm = PanelGemm<Avx2>;
+const PanelKernel kKernel{"avx2", Gemm::NR, &Gemm::run_f32, &Gemm::run_bf16, &Gemm::run_f16};
+
+}  // namespace
+
+const PanelKernel* panel_kernel_avx2() { return &kKernel; }
+
+}  // namespace tether::cpu::detail
+#else
+#include "backend/cpu/panel_gemm.h"
+namespace tether::cpu::detail {
+const PanelKernel* panel_kernel_avx2() { return nullptr; }
+}  // namespace tether::cpu::detail
+#endif

@@ -1,0 +1,46 @@
+// The panel GEMM on AVX-512 (F, BW, VL, DQ; compiled with those flags alone, chosen at run time): 8 rows x 32
+// columns per tile.
+#if defined(__x86_64__)
+#include <immintrin.h>
+
+#include "backend/cpu/panel_gemm_impl.h"
+
+namespace tether::cpu::detail {
+namespace {
+
+struct Avx512 {
+  using reg = __m512;
+  static constexpr int width = 16, rows = 8;  // 16 accumulators + 2 weight vectors + 1 broadcast of 32 registers
+  static reg zero() { return _mm512_setzero_ps(); }
+  static reg load(const float* p) { return _mm512_loadu_ps(p); }
+  static void store(float* p, reg v) { _mm512_storeu_ps(p, v); }
+  static reg broadcast(float v) { return _mm512_set1_ps(v); }
+  static reg fma(reg a, reg b, reg c) { return _mm512_fmadd_ps(a, b, c); }
+  static reg add(reg a, reg b) { return _mm512_add_ps(a, b); }
+  static reg widen(const float* p) { return _mm512_loadu_ps(p); }
+  // The all-ones maskz forms compute the same as the plain intrinsics; GCC 12 warns that the plain ones' internal
+  // _mm512_undefined_*() "may be used uninitialized".
+  static constexpr __mmask16 kAll = 0xFFFF;
+  static reg widen(const uint16_t* p) {  // bf16 is the top half of a float32
+    const __m512i w = _mm512_maskz_cvtepu16_epi32(kAll, _mm256_loadu_si256(reinterpret_cast<const __m256i*>(p)));
+    return _mm512_castsi512_ps(_mm512_maskz_slli_epi32(kAll, w, 16));
+  }
+  static reg widen(const F16* p) {
+    return _mm512_maskz_cvtph_ps(kAll, _mm256_loadu_si256(reinterpret_cast<const __m256i*>(p)));
+  }
+};
+
+using Gemm = PanelGemm<Avx512>;
+const PanelKernel kKernel{"avx512", Gemm::NR, &Gemm::run_f32, &Gemm::run_bf16, &Gemm::run_f16};
+
+}  // namespace
+
+const PanelKernel* panel_kernel_avx512() { return &kKernel; }
+
+}  // namespace tether::cpu::detail
+#else
+#include "backend/cpu/panel_gemm.h"
+namespace tether::cpu::detail {
+const PanelKernel* panel_kernel_avx512() { return nullptr; }
+}  // namespace tether::cpu::detail
+#endif

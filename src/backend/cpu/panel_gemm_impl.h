@@ -1,0 +1,122 @@
+// The panel GEMM's loops and micro-kernel, written once over a small vector abstraction `V` and included by one
+// translation unit per ISA (panel_gemm_avx2.cpp, panel_gemm_avx512.cpp, panel_gemm_portable.cpp). V provides:
+//   using reg; static constexpr int width, rows (MR);
+//   zero(), load(const float*), store(float*, reg), broadcast(float), fma(a, b, c) = a*b + c (one rounding),
+//   add(a, b), widen(const T*) for T = float, bf16 (uint16_t), f16 (uint16_t, tagged F16).
+#pragma once
+
+#include <omp.h>
+
+#include <cstring>
+
+#include "backend/cpu/panel_gemm.h"
+
+namespace tether::cpu::detail {
+
+struct F16 {  // tag: a uint16_t panel holding IEEE half floats (bf16 is plain uint16_t)
+  uint16_t bits;
+};
+
+// Every function here is a member of a template instantiated with a TU-local V, so each ISA's translation unit
+// keeps its own copies (no std:: inline template is shared with code compiled for a lower ISA).
+template <class V>
+struct PanelGemm {
+  using reg = typename V::reg;
+  static constexpr int NR = 2 * V::width;  // two vector registers of columns
+  static constexpr int MR = V::rows;
+  static constexpr int64_t KC = 256;       // a panel block of KC x NR weights stays in L1
+  static constexpr int64_t MC = 16 * MR;   // an MC x KC block of x stays in L2
+  static int64_t min(int64_t a, int64_t b) { return a < b ? a : b; }
+
+  // acc = (first ? (accumulate ? y : 0) : y) + x[rows, k0:k0+kc] W^T; the last block adds the bias.
+  // Each element's k loop runs in index order with one rounding per step, whatever `rows` is.
+  template <class T, int R>
+  static void tile(const float* x, int64_t lda, const T* panel, int64_t kc, const float* bias, float* y,
+                   int64_t ldy, bool load_y, bool last) {
+    reg acc[R][2];
+    for (int r = 0; r < R; ++r) {
+      acc[r][0] = load_y ? V::load(y + r * ldy) : V::zero();
+      acc[r][1] = load_y ? V::load(y + r * ldy + V::width) : V::zero();
+    }
+    for (int64_t k = 0; k < kc; ++k) {
+      const reg b0 = V::widen(panel + k * NR);
+      const reg b1 = V::widen(panel + k * NR + V::width);
+      for (int r = 0; r < R; ++r) {
+        const reg a = V::broadcast(x[r * lda + k]);
+        acc[r][0] = V::fma(a, b0, acc[r][0]);
+        acc[r][1] = V::fma(a, b1, acc[r][1]);
+      }
+    }
+    if (last) {
+      const reg b0 = V::load(bias), b1 = V::load(bias + V::width);
+      for (int r = 0; r < R; ++r) {
+        acc[r][0] = V::add(acc[r][0], b0);
+        acc[r][1] = V::add(acc[r][1], b1);
+      }
+    }
+    for (int r = 0; r < R; ++r) {
+      V::store(y + r * ldy, acc[r][0]);
+      V::store(y + r * ldy + V::width, acc[r][1]);
+    }
+  }
+
+  template <class T, int R>
+  static void tile_rows(int rows, const float* x, int64_t lda, const T* panel, int64_t kc, const float* bias,
+                        float* y, int64_t ldy, bool load_y, bool last) {
+    if constexpr (R > 0) {
+      if (rows == R) return tile<T, R>(x, lda, panel, kc, bias, y, ldy, load_y, last);
+      return tile_rows<T, R - 1>(rows, x, lda, panel, kc, bias, y, ldy, load_y, last);
+    }
+  }
+
+  template <class T>
+  static void run(const PanelGemmArgs& a) {
+    const T* panels = static_cast<const T*>(a.panels);
+    const int64_t num_panels = (a.n + NR - 1) / NR;
+    const int64_t flops = 2 * a.m * a.n * a.k;
+    const int threads = flops < (int64_t(1) << 20) ? 1 : int(min(omp_get_max_threads(), num_panels));
+    // Each thread owns a fixed range of panels (columns), so no two threads touch the same output element and
+    // no reduction is ever split: the result does not depend on the thread count.
+#pragma omp parallel num_threads(threads)
+    {
+      const int t = omp_get_thread_num(), nt = omp_get_num_threads();
+      const int64_t p0 = num_panels * t / nt, p1 = num_panels * (t + 1) / nt;
+      alignas(64) float edge[MR * NR];  // the last panel's tile when N is not a multiple of NR
+      for (int64_t k0 = 0; k0 < a.k; k0 += KC) {
+        const int64_t kc = min(KC, a.k - k0);
+        const bool first = k0 == 0, last = k0 + kc == a.k;
+        const bool load_y = !first || a.accumulate;
+        for (int64_t i0 = 0; i0 < a.m; i0 += MC) {
+          const int64_t mc = min(MC, a.m - i0);
+          for (int64_t p = p0; p < p1; ++p) {
+            const T* panel = panels + p * a.k * NR + k0 * NR;
+            const float* bias = a.bias + p * NR;
+            const int64_t cols = min(NR, a.n - p * NR);
+            for (int64_t i = i0; i < i0 + mc; i += MR) {
+              const int rows = int(min(MR, i0 + mc - i));
+              const float* x = a.x + i * a.lda + k0;
+              float* y = a.y + i * a.ldy + p * NR;
+              if (cols == NR) {
+                tile_rows<T, MR>(rows, x, a.lda, panel, kc, bias, y, a.ldy, load_y, last);
+              } else {
+                for (int r = 0; r < rows; ++r) {
+                  if (load_y) std::memcpy(edge + r * NR, y + r * a.ldy, std::size_t(cols) * sizeof(float));
+                  std::memset(edge + r * NR + cols, 0, std::size_t(NR - cols) * sizeof(float));
+                }
+                tile_rows<T, MR>(rows, x, a.lda, panel, kc, bias, edge, NR, load_y, last);
+                for (int r = 0; r < rows; ++r)
+                  std::memcpy(y + r * a.ldy, edge + r * NR, std::size_t(cols) * sizeof(float));
+              }
+            }
+          }
+        }
+      }
+    }
+  }
+
+  static void run_f32(const PanelGemmArgs& a) { run<float>(a); }
+  static void run_bf16(const PanelGemmArgs& a) { run<uint16_t>(a); }
+  static void run_f16(const PanelGemmArgs& a) { run<F16>(a); }
+};
+
+}  // namespace tether::cpu::detail

@@ -1,0 +1,59 @@
+// The panel GEMM in plain C++ (fixed-size arrays the compiler vectorises: NEON on aarch64), 4 rows x 16 columns.
+// It is the aarch64 kernel and, on x86, the reference the intrinsic kernels are tested against bit for bit.
+#include <cmath>
+#include <cstring>
+
+#include "backend/cpu/panel_gemm_impl.h"
+#include "core/dtype.h"
+
+namespace tether::cpu::detail {
+namespace {
+
+struct Portable {
+  static constexpr int width = 8, rows = 4;
+  struct reg {
+    float v[width];
+  };
+  static reg zero() { return reg{}; }
+  static reg load(const float* p) {
+    reg r;
+    std::memcpy(r.v, p, sizeof r.v);
+    return r;
+  }
+  static void store(float* p, const reg& r) { std::memcpy(p, r.v, sizeof r.v); }
+  static reg broadcast(float s) {
+    reg r;
+    for (float& v : r.v) v = s;
+    return r;
+  }
+  static reg fma(const reg& a, const reg& b, const reg& c) {
+    reg r;
+    for (int i = 0; i < width; ++i) r.v[i] = std::fma(a.v[i], b.v[i], c.v[i]);  // one rounding, as the FMA units
+    return r;
+  }
+  static reg add(const reg& a, const reg& b) {
+    reg r;
+    for (int i = 0; i < width; ++i) r.v[i] = a.v[i] + b.v[i];
+    return r;
+  }
+  static reg widen(const float* p) { return load(p); }
+  static reg widen(const uint16_t* p) {
+    reg r;
+    for (int i = 0; i < width; ++i) r.v[i] = bf16_to_f32(p[i]);
+    return r;
+  }
+  static reg widen(const F16* p) {
+    reg r;
+    for (int i = 0; i < width; ++i) r.v[i] = f16_to_f32(p[i].bits);
+    return r;
+  }
+};
+
+using Gemm = PanelGemm<Portable>;
+const PanelKernel kKernel{"portable", Gemm::NR, &Gemm::run_f32, &Gemm::run_bf16, &Gemm::run_f16};
+
+}  // namespace
+
+const PanelKernel* panel_kernel_portable() { return &kKernel; }
+
+}  // namespace tether::cpu::detail
