@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # SmolVLA on CPU, Tether against upstream lerobot (PyTorch, fp32) in one run: same full-size checkpoint, same
 # images, state, instruction and noise. Prints both latencies, their ratio, both peak RSS values and the max |diff|
-# between the two action chunks.
+# between the two action chunks, for Tether at fp32, bf16 and fp16 (which path each took is printed).
+# TETHER_MAX_CPU_ISA=AVX2 (with ONEDNN_MAX_CPU_ISA=AVX2) measures the AVX2 paths on any CPU.
 # Usage: bench/smolvla_cpu.sh [--iterations N] [--warmup N] [--checkpoint DIR]
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -21,6 +22,11 @@ while [ $# -gt 0 ]; do
 done
 
 scripts/setup.sh release >/dev/null
+# Under the AVX2 cap the reference is capped too (PyTorch's CPU matmuls go through MKL and oneDNN), so both engines
+# run what an AVX2-only CPU would.
+if [ "${TETHER_MAX_CPU_ISA:-}" != "" ] && [ "${TETHER_MAX_CPU_ISA^^}" = AVX2 ]; then
+  export ONEDNN_MAX_CPU_ISA="${ONEDNN_MAX_CPU_ISA:-AVX2}" MKL_ENABLE_INSTRUCTIONS="${MKL_ENABLE_INSTRUCTIONS:-AVX2}"
+fi
 tools/oracle/setup.sh >/dev/null
 [ -f "$checkpoint/model.safetensors" ] || tools/oracle/run.sh smolvla_oracle.py full-size --out "$checkpoint"
 
@@ -46,15 +52,14 @@ echo "lerobot (PyTorch fp32, $(nproc) threads): $ref_iterations runs after $warm
 tools/oracle/run.sh bench/lerobot_reference.py --checkpoint "$checkpoint" "${image_args[@]}" --state "$state" \
   --instruction "$instruction" --noise "$work/noise.safetensors" --warmup "$warmup" --iterations "$ref_iterations" \
   --out "$work/ref.safetensors" > "$work/ref.json"
-echo "tether (fp32): $iterations runs after $warmup warm-up..." >&2
-build/release/tether bench "$checkpoint" "${image_args[@]}" --state="$state" --instruction "$instruction" \
-  --noise "$work/noise.safetensors" --warmup "$warmup" --iterations "$iterations" --json \
-  --out "$work/tether.safetensors" > "$work/tether.json"
-
-echo "tether (bf16): $iterations runs after $warmup warm-up..." >&2
-build/release/tether bench "$checkpoint" "${image_args[@]}" --state="$state" --instruction "$instruction" \
-  --noise "$work/noise.safetensors" --warmup "$warmup" --iterations "$iterations" --json --precision bf16 \
-  --out "$work/tether_bf16.safetensors" > "$work/tether_bf16.json"
+# fp32, then both half-precision paths. On a CPU with bf16 instructions bf16 runs natively; elsewhere (or under
+# TETHER_MAX_CPU_ISA=AVX2) it keeps bf16 weights widened to fp32 in the kernel, as fp16 always does.
+for precision in fp32 bf16 fp16; do
+  echo "tether ($precision): $iterations runs after $warmup warm-up..." >&2
+  build/release/tether bench "$checkpoint" "${image_args[@]}" --state="$state" --instruction "$instruction" \
+    --noise "$work/noise.safetensors" --warmup "$warmup" --iterations "$iterations" --json --precision "$precision" \
+    --out "$work/tether_$precision.safetensors" > "$work/tether_$precision.json"
+done
 
 tools/oracle/run.sh - "$work" <<'PY'
 import json, sys
@@ -65,12 +70,17 @@ a = load_file(w + "/ref.safetensors")["actions"]
 r_ms = ref["median_ms"]
 print(f"{'engine':<22}{'median ms':>12}{'speed-up':>10}{'peak RSS MB':>14}{'RSS ratio':>11}{'max |diff| vs lerobot':>24}")
 print(f"{'lerobot (PyTorch fp32)':<22}{r_ms:>12.1f}{1.0:>9.2f}x{ref['peak_rss_mb']:>14.0f}{1.0:>11.2f}{'-':>24}")
-for name, tag in (("tether fp32", "tether"), ("tether bf16", "tether_bf16")):
-    t = json.load(open(f"{w}/{tag}.json"))
-    b = load_file(f"{w}/{tag}.safetensors")["actions"]
+fp32 = json.load(open(f"{w}/tether_fp32.json"))
+for precision in ("fp32", "bf16", "fp16"):
+    t = json.load(open(f"{w}/tether_{precision}.json"))
+    b = load_file(f"{w}/tether_{precision}.safetensors")["actions"]
     diff = (a.reshape(b.shape) - b).abs().max().item()
     t_ms = t["latency_ms"]["p50"]
+    name = "tether " + t["inference_mode"].removeprefix("cpu-")
     print(f"{name:<22}{t_ms:>12.1f}{r_ms / t_ms:>9.2f}x{t['peak_rss_mb']:>14.0f}{t['peak_rss_mb'] / ref['peak_rss_mb']:>11.2f}{diff:>24.3e}")
     print("    stages ms: " + "  ".join(f"{k} {v:.1f}" for k, v in t["stages_ms"].items()))
+    print(f"    {t['compute']}; vs tether fp32: {t_ms / fp32['latency_ms']['p50']:.2f}x latency, "
+          f"{t['peak_rss_mb'] / fp32['peak_rss_mb']:.2f}x peak RSS")
+print("cpu: " + fp32["cpu_dispatch"])
 print(f"max |action| {a.abs().max().item():.3f} (robot units)")
 PY
