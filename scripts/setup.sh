@@ -30,8 +30,9 @@ if ((${#missing[@]})); then
   DEBIAN_FRONTEND=noninteractive $sudo apt-get install -y -qq --no-install-recommends "${missing[@]}" >/dev/null
 fi
 
-if [ ! -f "build/$preset/build.ninja" ]; then
-  cmake --preset "$preset" >/dev/null
+# A build folder configured when -march=native was the default is reconfigured for the portable baseline.
+if [ ! -f "build/$preset/build.ninja" ] || grep -q '^TETHER_NATIVE:BOOL=ON' "build/$preset/CMakeCache.txt" 2>/dev/null; then
+  cmake --preset "$preset" -DTETHER_NATIVE=OFF >/dev/null
 fi
 # Progress lines are filtered out; the build's own exit status decides (a failed build never passes as done).
 set +e
