@@ -19,7 +19,8 @@ set(ENV{PKG_CONFIG_PATH} "")
 # Test binaries (gtest_discover_tests, ctest) run under user-mode emulation. The prefix is `/`, whose loader comes
 # from libc6:arm64 (pulled in by the -dev:arm64 packages) and matches the libc in /lib/aarch64-linux-gnu that every
 # library is found in; /usr/aarch64-linux-gnu (the cross toolchain's older glibc) would pair its loader with that
-# newer libc, and threaded programs hang on it.
+# newer libc, and threaded programs hang on it. QEMU_CPU in the environment picks the emulated CPU (the default, "max",
+# has 512-bit SVE; scripts/check_arm64.sh runs the tests on an Orin-like and a Thor-like CPU).
 find_program(TETHER_QEMU_AARCH64 qemu-aarch64-static qemu-aarch64)
 if(TETHER_QEMU_AARCH64)
   set(CMAKE_CROSSCOMPILING_EMULATOR "${TETHER_QEMU_AARCH64};-L;/")
