@@ -98,6 +98,9 @@ std::string cpu_model() {
   std::string line;
   while (std::getline(in, line))
     if (line.rfind("model name", 0) == 0) return line.substr(line.find(':') + 2);
+  // aarch64's /proc/cpuinfo has no model name; the device tree names the board (a Jetson's, for one).
+  std::ifstream board("/proc/device-tree/model");
+  if (std::getline(board, line, '\0') && !line.empty()) return line;
   return "unknown CPU";
 }
 

@@ -155,6 +155,12 @@ template <class Src>
   }
 }
 
+void run_f32_portable(const PlanarF32& s, const Job& j) { run(s, j); }
+void run_u8_portable(const InterleavedU8& s, const Job& j) { run(s, j); }
+
+std::atomic<bool> g_force_portable{false};
+
+#if defined(__x86_64__)
 // Two builds of the kernels: one for CPUs with FMA, where std::fma is one instruction, and a
 // portable one where it is a (correctly rounded, slower) libm call. Both give identical results.
 [[gnu::target("avx2,fma"), gnu::flatten]] void run_f32_fma(const PlanarF32& s, const Job& j) {
@@ -163,15 +169,18 @@ template <class Src>
 [[gnu::target("avx2,fma"), gnu::flatten]] void run_u8_fma(const InterleavedU8& s, const Job& j) {
   run(s, j);
 }
-void run_f32_portable(const PlanarF32& s, const Job& j) { run(s, j); }
-void run_u8_portable(const InterleavedU8& s, const Job& j) { run(s, j); }
-
-std::atomic<bool> g_force_portable{false};
 
 bool use_fma_kernels() {
   static const bool has = __builtin_cpu_supports("avx2") && __builtin_cpu_supports("fma");
   return has && !g_force_portable.load(std::memory_order_relaxed);
 }
+#else
+// AArch64's baseline has a fused multiply-add instruction, so the portable build already runs std::fma as one
+// instruction: there is no second build to pick.
+void run_f32_fma(const PlanarF32& s, const Job& j) { run_f32_portable(s, j); }
+void run_u8_fma(const InterleavedU8& s, const Job& j) { run_u8_portable(s, j); }
+bool use_fma_kernels() { return false; }
+#endif
 
 template <class Src>
 void run_dispatch(const Src& src, const Job& j) {

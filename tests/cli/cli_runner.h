@@ -11,6 +11,13 @@
 #include <iterator>
 #include <string>
 
+// TETHER_MAX_CPU_ISA values below what this CPU may have, lowest first; the first has no bf16 instructions.
+#if defined(__x86_64__)
+inline constexpr const char* kLowerIsaCaps[] = {"AVX2", "AVX512_CORE"};
+#else
+inline constexpr const char* kLowerIsaCaps[] = {"NEON"};
+#endif
+
 struct CliRun {
   int code = -1;
   std::string out, err;

@@ -188,8 +188,8 @@ TEST(GoProbe, SaysWhyThePrecisionWasPicked) {
                                          "parameters": 1000000000000000}}})");
   ::setenv("HF_HUB_CACHE", cache.string().c_str(), 1);
   ::setenv("HF_HUB_OFFLINE", "1", 1);
-  // Capped at AVX2 (no bf16 instructions), so memory alone decides, whatever CPU runs the test.
-  ::setenv("TETHER_MAX_CPU_ISA", "AVX2", 1);
+  // Capped at AVX2 or NEON (no bf16 instructions), so memory alone decides, whatever CPU runs the test.
+  ::setenv("TETHER_MAX_CPU_ISA", kLowerIsaCaps[0], 1);
   const CliRun small = run_with_env("TETHER_REGISTRY", reg.string(), "go --model small");
   const CliRun huge = run_with_env("TETHER_REGISTRY", reg.string(), "go --model huge");
   const CliRun asked = run_with_env("TETHER_REGISTRY", reg.string(), "go --model huge --precision fp32");

@@ -82,7 +82,7 @@ TEST(PredictCli, SameBitsOnEveryDispatchLevel) {
     const std::string args = "predict " + kGood + " --seed 9 --json --precision " + precision;
     const CliRun native = run_tether(args);
     ASSERT_EQ(native.code, 0) << native.err;
-    for (const char* cap : {"AVX2", "AVX512_CORE"}) {
+    for (const char* cap : kLowerIsaCaps) {
       ::setenv("TETHER_MAX_CPU_ISA", cap, 1);
       const CliRun capped = run_tether(args);
       ::unsetenv("TETHER_MAX_CPU_ISA");

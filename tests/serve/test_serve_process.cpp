@@ -26,6 +26,12 @@ namespace {
 
 const std::string kDemo = std::string(TETHER_SOURCE_DIR) + "/models/demo/smolvla-demo";
 const std::string kImage = std::string(TETHER_SOURCE_DIR) + "/models/demo/sample.png";
+// A dispatch cap without bf16 instructions on this architecture.
+#if defined(__x86_64__)
+const std::string kNoBf16Cap = "TETHER_MAX_CPU_ISA=AVX2";
+#else
+const std::string kNoBf16Cap = "TETHER_MAX_CPU_ISA=NEON";
+#endif
 
 // A `tether serve` child whose stdout is read for the listening line. SIGKILLed if a test leaves it running.
 class ServeProcess {
@@ -232,12 +238,12 @@ TEST(GoCli, MissingDownloadSaysHowToGetIt) {
 
 TEST(GoCli, ServesTheBundledDemo) {
   // go exports the model into the Tether cache (keyed by version and precision), verifies it, then serves it.
-  // Capped at AVX2 so go picks fp32 on every CPU (with native bf16 it would pick bf16).
+  // Capped at AVX2 (NEON on aarch64) so go picks fp32 on every CPU (with native bf16 it would pick bf16).
   const auto tether_cache = temp_dir("tether_cache");
   const auto export_dir = tether_cache / "exports" / TETHER_VERSION_STR / "smolvla-demo-fp32";
   {
     ServeProcess server({"go", "--model", "smolvla-demo", "--port", "0"},
-                        {"TETHER_CACHE=" + tether_cache.string(), "TETHER_MAX_CPU_ISA=AVX2"});
+                        {"TETHER_CACHE=" + tether_cache.string(), kNoBf16Cap});
     wait_ready(server.port());
     const HttpReply r = http_post(server.port(), "/act", act_body(5));
     ASSERT_EQ(r.status, 200) << r.body;
@@ -248,7 +254,7 @@ TEST(GoCli, ServesTheBundledDemo) {
   const auto first = std::filesystem::last_write_time(export_dir / "model.safetensors");
   {  // A second start reuses the export; a stale one (another Tether version) would be rebuilt.
     ServeProcess again({"go", "--model", "smolvla-demo", "--port", "0"},
-                       {"TETHER_CACHE=" + tether_cache.string(), "TETHER_MAX_CPU_ISA=AVX2"});
+                       {"TETHER_CACHE=" + tether_cache.string(), kNoBf16Cap});
     wait_ready(again.port());
     EXPECT_EQ(again.terminate(), 0);
   }

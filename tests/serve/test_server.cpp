@@ -330,8 +330,11 @@ TEST(Server, QueuedPastTheRequestTimeoutIs408) {
   TestServer srv(engine, o);
   srv.wait_ready();
   engine.delay_ms = 300;
+  const int before = engine.calls;
   auto slow = std::async(std::launch::async, [&] { return http_post(srv.port(), "/act", body(0, 0)); });
-  std::this_thread::sleep_for(50ms);
+  // The second request must arrive while the first is in the engine, however slow the machine (or emulator) is.
+  for (int i = 0; i < 1000 && engine.calls == before; ++i) std::this_thread::sleep_for(5ms);
+  ASSERT_GT(engine.calls, before) << "the first request never reached the engine";
   const HttpReply late = http_post(srv.port(), "/act", body(1, 1));
   EXPECT_EQ(late.status, 408);
   EXPECT_EQ(error_code(late), "request_timeout");

@@ -1,0 +1,109 @@
+#!/usr/bin/env bash
+# Cross-builds Tether for aarch64 (Jetson Orin / Thor) into build/arm64 and runs the `unit` and `parity` tests
+# under qemu-user-static. Installs what is missing first (Debian 12 amd64 + multiarch arm64; idempotent, quick when
+# done). Slow under emulation, so not part of scripts/test.sh. Ends with one line starting PASS or FAIL.
+# Usage: scripts/check_arm64.sh [extra ctest arguments]     env: JOBS (build and test jobs, default: nproc)
+set -uo pipefail
+cd "$(dirname "$0")/.."
+start=$(date +%s)
+jobs="${JOBS:-$(nproc)}"
+sysroot=build/arm64-sysroot
+
+elapsed() { local s=$(($(date +%s) - start)); printf '%dm%02ds' $((s / 60)) $((s % 60)); }
+fail() {
+  echo "check_arm64: $*" >&2
+  echo "FAIL: aarch64 check ($*) after $(elapsed)"
+  exit 1
+}
+
+sudo=""
+[ "$(id -u)" -ne 0 ] && sudo="sudo"
+installed() { dpkg-query -W -f='${Status}' "$1" 2>/dev/null | grep -q "install ok installed"; }
+
+# Host tools. nlohmann-json3-dev and libcli11-dev are header-only Architecture: all packages, shared by both builds.
+host_packages=(
+  build-essential cmake ninja-build pkg-config python3 crossbuild-essential-arm64 qemu-user-static
+  nlohmann-json3-dev libcli11-dev
+)
+# The target libraries, as in scripts/setup.sh. Not needed: OpenBLAS (only bench/, off here) and
+# ocl-icd-opencl-dev (Debian builds arm64 oneDNN without the OpenCL GPU runtime, so its dnnl-config.cmake does not
+# look for OpenCL). libdnnl-dev:arm64 is not co-installable with libdnnl-dev:amd64 (both ship
+# /usr/include/oneapi/dnnl/dnnl_config.h, with different contents) and is handled below; its library is.
+arm64_packages=(
+  libdnnl2 libspdlog-dev libfmt-dev libpcre2-dev libicu-dev libspng-dev libturbojpeg0-dev libboost1.81-dev
+  libcurl4-openssl-dev libssl-dev libgtest-dev libgmock-dev
+)
+
+need_update=0
+if ! dpkg --print-foreign-architectures | grep -qx arm64; then
+  echo "check_arm64: adding the arm64 architecture to dpkg"
+  $sudo dpkg --add-architecture arm64 || fail "dpkg --add-architecture arm64 failed"
+  need_update=1
+fi
+missing=()
+for p in "${host_packages[@]}"; do installed "$p" || missing+=("$p"); done
+for p in "${arm64_packages[@]}"; do installed "$p:arm64" || missing+=("$p:arm64"); done
+if ((${#missing[@]})); then
+  need_update=1
+fi
+if ((need_update)); then
+  $sudo apt-get update -qq || fail "apt-get update failed"
+fi
+if ((${#missing[@]})); then
+  # Multi-Arch: same packages must have one version on every architecture, so apt may upgrade an installed amd64
+  # package to the version of its new arm64 twin; it must never remove one (the native build needs them all).
+  sim=$(apt-get install -s --no-install-recommends "${missing[@]}" 2>&1) || fail "apt-get cannot install ${missing[*]}: $(tail -1 <<<"$sim")"
+  if grep -q '^Remv' <<<"$sim"; then
+    grep '^Remv' <<<"$sim" >&2
+    fail "installing ${missing[*]} would remove the packages above; not installing"
+  fi
+  upgrades=$(grep -cE '^Inst [^ ]+ \[' <<<"$sim" || true)
+  echo "check_arm64: installing ${missing[*]} (apt also upgrades $upgrades installed packages to matching versions)"
+  DEBIAN_FRONTEND=noninteractive $sudo apt-get install -y -qq --no-install-recommends "${missing[@]}" >/dev/null ||
+    fail "apt-get install ${missing[*]} failed"
+fi
+
+# libdnnl-dev:arm64 (headers, CMake package, libdnnl.so link) goes into a folder of its own, unpacked from its .deb;
+# the CMake package there points at the real library from libdnnl2:arm64 through links.
+dnnl_version=$(dpkg-query -W -f='${Version}' libdnnl2:arm64)
+stamp="$sysroot/.libdnnl-dev_$dnnl_version"
+if [ ! -f "$stamp" ]; then
+  echo "check_arm64: unpacking libdnnl-dev:arm64 $dnnl_version into $sysroot"
+  rm -rf "$sysroot" && mkdir -p "$sysroot/debs" || fail "cannot create $sysroot"
+  (cd "$sysroot/debs" && apt-get download -q "libdnnl-dev:arm64=$dnnl_version" 2>&1 | grep -v '^W: Download is performed unsandboxed') ||
+    true
+  deb=$(ls "$sysroot"/debs/libdnnl-dev_*_arm64.deb 2>/dev/null | head -1)
+  [ -n "$deb" ] || fail "apt-get download libdnnl-dev:arm64=$dnnl_version failed"
+  dpkg-deb -x "$deb" "$sysroot" || fail "dpkg-deb -x $deb failed"
+  for f in /usr/lib/aarch64-linux-gnu/libdnnl.so.*; do ln -sf "$f" "$sysroot/usr/lib/aarch64-linux-gnu/"; done
+  touch "$stamp"
+fi
+
+if [ ! -f build/arm64/build.ninja ]; then
+  cmake --preset arm64 >/dev/null || fail "cmake --preset arm64 failed"
+fi
+echo "check_arm64: building build/arm64 (-j$jobs)"
+cmake --build --preset arm64 -- -j"$jobs" 2>&1 | grep -vE '^\[[0-9]+/[0-9]+\] (Building|Linking)'
+((PIPESTATUS[0] == 0)) || fail "the arm64 build failed"
+
+# Two emulated CPUs, one per Jetson generation: qemu 7.2's default ("max") has 512-bit SVE, which no Jetson has.
+#   orin: cortex-a76, ARMv8.2-A with NEON, no SVE, no bf16 (Orin's Cortex-A78AE is not among qemu 7.2's models)
+#   thor: max with 128-bit vectors, SVE2 and bf16 (Thor's Neoverse V3AE)
+cpus=("orin=cortex-a76" "thor=max,sve-default-vector-length=16")
+counts=()
+for entry in "${cpus[@]}"; do
+  name=${entry%%=*}
+  cpu=${entry#*=}
+  log=build/arm64-check-$name.log
+  echo "check_arm64: unit and parity tests under qemu-aarch64-static, CPU $cpu ($name-like; -j$jobs; slow)"
+  QEMU_CPU=$cpu ctest --preset arm64 -j"$jobs" "$@" 2>&1 | tee "$log"
+  rc=${PIPESTATUS[0]}
+  summary=$(grep -E 'tests passed, [0-9]+ tests failed out of [0-9]+' "$log" | tail -1)
+  [ -n "$summary" ] || fail "ctest ran no tests on $name (rc $rc; see $log)"
+  total=$(sed -E 's/.* out of ([0-9]+).*/\1/' <<<"$summary")
+  failed=$(sed -E 's/.*passed, ([0-9]+) tests failed.*/\1/' <<<"$summary")
+  ((rc == 0)) || fail "$failed of $total unit+parity tests failed on the $name-like CPU $cpu (see $log)"
+  counts+=("$total on $name ($cpu)")
+done
+summary_line=$(IFS=,; echo "${counts[*]}")
+echo "PASS: aarch64 cross-build; unit+parity tests passed under qemu-aarch64-static: ${summary_line//,/, } in $(elapsed)"
