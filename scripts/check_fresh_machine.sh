@@ -57,15 +57,36 @@ remove_tree() {
   unmount_under "$1" || die "cannot unmount what is mounted under $1; not deleting it"
   rm -rf --one-file-system "$1"
 }
-cleanup() { unmount_under "$root" || true; unmount_under "$dir/base.tmp" || true; }
+# Processes still running inside a tree (a step that was interrupted), by their ids.
+stop_inside() {
+  local p pids=()
+  for p in /proc/[0-9]*; do
+    [ "$(readlink "$p/root" 2>/dev/null)" = "$1" ] && pids+=("${p#/proc/}")
+  done
+  ((${#pids[@]})) || return 0
+  kill -TERM "${pids[@]}" 2>/dev/null || true
+  sleep 2
+  kill -KILL "${pids[@]}" 2>/dev/null || true
+}
+step_pid=""
+cleanup() {
+  set +e
+  if [ -n "$step_pid" ]; then kill -TERM -- "-$step_pid" 2>/dev/null; wait "$step_pid" 2>/dev/null; fi
+  stop_inside "$root"
+  unmount_under "$root" || true
+  unmount_under "$dir/base.tmp" || true
+}
 trap cleanup EXIT
-trap 'exit 130' INT TERM
+trap 'echo "FAIL: interrupted (log: $log)"; exit 1' INT TERM
 
-# The first line of the log (from line $1 on) that looks like an error; else its last non-empty line.
+# The first line of the log (from line $1 on) that reports an error (apt, CMake, compiler, ninja, CTest, pytest,
+# pip, a shell); else the first that looks like one; else the last non-empty line.
 first_error() {
   local line
-  line="$(tail -n +"$1" "$log" | grep -E '(^E: |^error|[Ee]rror[: ]|ERROR|FAILED|^FAIL|fatal|[Nn]ot found|No such file|Traceback|[Cc]annot |[Cc]ould not|failed)' \
-    | grep -v -E '(^|[^0-9])0 (tests )?failed' | head -n 1 || true)"
+  line="$(tail -n +"$1" "$log" | grep -E -m1 \
+    '(^E: |CMake Error|(^|[^A-Za-z])error:|^FAILED|\*\*\*Failed|\*\*\*Exception|\*\*\*Timeout|\[  FAILED  \]|Traceback|^ERROR|^fatal:|No such file or directory|command not found)' || true)"
+  [ -n "$line" ] || line="$(tail -n +"$1" "$log" | grep -v -E '(Passed|OK \]|(^|[^0-9])0 (tests )?failed)' \
+    | grep -E -m1 '([Ee]rror|ERROR|FAIL|[Ff]ailed|[Nn]ot found|[Cc]annot |[Cc]ould not)' || true)"
   [ -n "$line" ] || line="$(tail -n +"$1" "$log" | grep -v '^\s*$' | tail -n 1 || true)"
   echo "${line:-no output}"
 }
@@ -190,12 +211,17 @@ run_step() {
   line=$(($(wc -l <"$log") + 1))
   say "\$ $cmd"
   echo "==== $name: $cmd" >>"$log"
-  if ! chroot "$root" /usr/bin/env -i HOME=/root USER=root LOGNAME=root SHELL=/bin/bash TERM=dumb \
-      PATH=/usr/local/sbin:/usr/local/bin:/usr/sbin:/usr/bin:/sbin:/bin "${passenv[@]}" \
-      /bin/bash -lc "cd $clone && $cmd" </dev/null >>"$log" 2>&1; then
+  # In its own process group, in the background: a signal to this script stops the step and unmounts at once.
+  setsid chroot "$root" /usr/bin/env -i HOME=/root USER=root LOGNAME=root SHELL=/bin/bash TERM=dumb \
+    PATH=/usr/local/sbin:/usr/local/bin:/usr/sbin:/usr/bin:/sbin:/bin "${passenv[@]}" \
+    /bin/bash -lc "cd $clone && $cmd" </dev/null >>"$log" 2>&1 &
+  step_pid=$!
+  if ! wait "$step_pid"; then
+    step_pid=""
     say "$name failed after $(minutes "$t0") min"
     fail "$line"
   fi
+  step_pid=""
   say "$name passed ($(minutes "$t0") min)"
 }
 run_step demo "./scripts/demo.sh --once"
