@@ -105,5 +105,5 @@ for entry in "${cpus[@]}"; do
   ((rc == 0)) || fail "$failed of $total unit+parity tests failed on the $name-like CPU $cpu (see $log)"
   counts+=("$total on $name ($cpu)")
 done
-summary_line=$(IFS=,; echo "${counts[*]}")
-echo "PASS: aarch64 cross-build; unit+parity tests passed under qemu-aarch64-static: ${summary_line//,/, } in $(elapsed)"
+summary_line=$(printf '%s; ' "${counts[@]}")
+echo "PASS: aarch64 cross-build; unit+parity tests passed under qemu-aarch64-static: ${summary_line%; } in $(elapsed)"
