@@ -19,6 +19,9 @@ namespace {
 
 // The format caps the header at 100 MB; anything larger is a corrupt or hostile length prefix.
 constexpr uint64_t kMaxHeaderBytes = 100ull * 1024 * 1024;
+// The schema nests 3 deep ({name: {"shape": [...]}}). Deeper input is refused while parsing: a 100 MB header of
+// nested brackets would otherwise overflow the stack in the recursive dump() that names a bad field.
+constexpr int kMaxHeaderDepth = 16;
 
 [[noreturn]] void fail(const std::string& label, const std::string& what) {
   throw Error(ErrorCode::format, label + ": " + what);
@@ -47,12 +50,16 @@ TensorEntry parse_entry(const nlohmann::json& j, const std::string& label, const
   if (!dtype_from_name(dtype_name_str, &e.dtype))
     throw Error(ErrorCode::unsupported, label + ": " + where + " has unknown dtype '" + dtype_name_str + "'");
 
-  // Count bytes with overflow checks: a lying shape must not wrap around to a plausible size.
+  // Count bytes with overflow checks: a lying shape must not wrap around to a plausible size. The bound is
+  // INT64_MAX, not UINT64_MAX: dims and element counts are int64_t (Tensor::numel() multiplies the dims left to
+  // right), and a zero dim after huge ones still leaves those partial products to overflow.
+  constexpr uint64_t kMax = uint64_t(INT64_MAX);
   uint64_t bytes = dtype_size(e.dtype);
   for (const auto& d : *shape_it) {
     if (!d.is_number_unsigned()) fail(label, where + " shape " + shape_it->dump() + " is not non-negative integers");
     const uint64_t dim = d.get<uint64_t>();
-    if (dim != 0 && bytes > UINT64_MAX / dim) fail(label, where + " shape " + shape_it->dump() + " overflows");
+    if (dim > kMax || (dim != 0 && bytes > kMax / dim))
+      fail(label, where + " shape " + shape_it->dump() + " overflows");
     bytes *= dim;
     e.shape.push_back(int64_t(dim));
   }
@@ -87,7 +94,11 @@ SafeTensorsHeader parse_safetensors_header(const uint8_t* bytes, std::size_t siz
   if (header_len > size - 8)
     fail(label, "header length " + std::to_string(header_len) + " exceeds the file size (truncated?)");
 
-  nlohmann::json j = nlohmann::json::parse(bytes + 8, bytes + 8 + header_len, nullptr, /*allow_exceptions=*/false);
+  auto depth_guard = [&](int depth, nlohmann::json::parse_event_t, nlohmann::json&) {
+    if (depth > kMaxHeaderDepth) fail(label, "header JSON nests deeper than " + std::to_string(kMaxHeaderDepth) + " levels");
+    return true;
+  };
+  nlohmann::json j = nlohmann::json::parse(bytes + 8, bytes + 8 + header_len, depth_guard, /*allow_exceptions=*/false);
   if (j.is_discarded()) fail(label, "header is not valid JSON");
   if (!j.is_object()) fail(label, "header is not a JSON object");
 

@@ -132,6 +132,26 @@ TEST(SafeTensors, ShapeOverflow) {
   const fs::path p = temp_path("overflow.safetensors");
   write_raw(p, R"({"w":{"dtype":"F32","shape":[4611686018427387904, 8],"data_offsets":[0,0]}})", "");
   expect_error(p, ErrorCode::format, {"'w'", "overflows"});
+  // Zero bytes, but dims beyond int64_t, or whose partial product before the zero overflows Tensor::numel().
+  write_raw(p, R"({"w":{"dtype":"U8","shape":[9223372036854775808, 0],"data_offsets":[0,0]}})", "");
+  expect_error(p, ErrorCode::format, {"'w'", "overflows"});
+  write_raw(p, R"({"w":{"dtype":"U8","shape":[0, 18446744073709551615],"data_offsets":[0,0]}})", "");
+  expect_error(p, ErrorCode::format, {"'w'", "overflows"});
+  write_raw(p, R"({"w":{"dtype":"U8","shape":[8589934592, 1073741824, 0],"data_offsets":[0,0]}})", "");
+  expect_error(p, ErrorCode::format, {"'w'", "overflows"});
+  // The largest shapes that fit still load (zero elements, so no data).
+  write_raw(p, R"({"w":{"dtype":"U8","shape":[9223372036854775807, 0],"data_offsets":[0,0]}})", "");
+  EXPECT_EQ(SafeTensorsFile::open(p.string()).get("w").numel(), 0);
+}
+
+TEST(SafeTensors, DeeplyNestedHeaderIsRefused) {
+  // A header of nested brackets would overflow the stack when the error message dumps the bad field.
+  const fs::path p = temp_path("nested.safetensors");
+  const std::size_t depth = 1'000'000;
+  write_raw(p, R"({"w":{"dtype":"F32","shape":[)" + std::string(depth, '[') + std::string(depth, ']') +
+                   R"(],"data_offsets":[0,0]}})",
+            "");
+  expect_error(p, ErrorCode::format, {"nests deeper than"});
 }
 
 TEST(SafeTensors, UnknownDtype) {
