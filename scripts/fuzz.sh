@@ -2,8 +2,10 @@
 # Builds the libFuzzer targets with clang (the fuzz preset instruments all of src/: coverage, ASan, UBSan) and runs
 # each for a bounded time, one after the other, on one core, from seeds in tests/fixtures and fuzz/seeds.
 # Usage: scripts/fuzz.sh [seconds per target, default 60] [target ...]     e.g. scripts/fuzz.sh 600
-# Prints per target the coverage edges reached (libFuzzer's `cov:` on its last status line) and the findings:
-# crash-, leak-, timeout- and oom- files in build/fuzz/findings/<target>/ (emptied at the start of each run).
+# Prints per target the coverage edges reached and the findings: crash-, leak-, timeout- and oom- files in
+# build/fuzz/findings/<target>/ (emptied at the start of each run). The edges are libFuzzer's `cov:` on the last line
+# of a plain (non-fork) run over the corpus and seeds after the fuzzing: fork mode's own `cov:` counts differently
+# and is not comparable between runs.
 # Full logs: build/fuzz/logs/<target>.log. The corpus grown by earlier runs (build/fuzz/corpus/<target>/) is kept.
 # Exit status 1 when any target has findings.
 set -euo pipefail
@@ -57,8 +59,9 @@ for name in "${targets[@]}"; do
   "$bin" -fork=1 -ignore_crashes=1 -ignore_timeouts=1 -ignore_ooms=1 \
     -max_total_time="$seconds" -max_len=65536 -rss_limit_mb=2048 -timeout=10 -print_funcs=0 \
     -artifact_prefix="$findings/" "${dict[@]}" "$corpus" "${seed_dirs[@]}" >"$log" 2>&1 || rc=$?
-  # The fork-mode status lines (`#N: cov: ...`), not the inner processes' logs quoted after a finding.
-  edges=$(grep -E '^#[0-9]+: cov: [0-9]+' "$log" | tail -n 1 | sed -E 's/.*cov: ([0-9]+).*/\1/')
+  # Coverage of what the run kept: every corpus input and seed executed once, without fork mode.
+  "$bin" -runs=0 -rss_limit_mb=2048 -timeout=10 -print_funcs=0 "$corpus" "${seed_dirs[@]}" >"$log.cov" 2>&1 || true
+  edges=$(grep -E 'cov: [0-9]+' "$log.cov" | tail -n 1 | sed -E 's/.*cov: ([0-9]+).*/\1/')
   crashes=$(count crash) leaks=$(count leak) timeouts=$(count timeout) ooms=$(count oom)
   total=$((crashes + leaks + timeouts + ooms))
   [ "$total" -gt 0 ] && found_any=1
