@@ -51,6 +51,7 @@ CpuIsa parse_cap(const std::string& value, CpuIsa detected) {
 #endif
 }
 
+#if defined(__x86_64__)
 const char* onednn_isa_name(dnnl::cpu_isa isa) {
   switch (isa) {
     case dnnl::cpu_isa::sse41: return "sse41";
@@ -64,6 +65,7 @@ const char* onednn_isa_name(dnnl::cpu_isa isa) {
     default: return "other";
   }
 }
+#endif
 
 CpuPaths decide() {
   CpuPaths p;
