@@ -1,8 +1,13 @@
-// PCRE2 (UTF + UCP, JIT when available) running Oniguruma-dialect tokenizer patterns.
+// Tokenizer patterns on Oniguruma (the engine the Rust crate uses) or, for comparison, translated
+// to PCRE2 (UTF + UCP, JIT when available).
 #define PCRE2_CODE_UNIT_WIDTH 8
 #include "text/onig_regex.h"
 
+#include <oniguruma.h>
 #include <pcre2.h>
+
+#include <atomic>
+#include <mutex>
 
 #include "core/error.h"
 #include "text/unicode.h"
@@ -117,16 +122,71 @@ std::string translate_onig_pattern(std::string_view p, const std::string& where)
   return out;
 }
 
+namespace detail {
+namespace {
+std::atomic<RegexEngine> g_engine{RegexEngine::oniguruma};
+}
+void set_regex_engine(RegexEngine e) { g_engine.store(e); }
+RegexEngine regex_engine() { return g_engine.load(); }
+}  // namespace detail
+
+namespace {
+
+std::string onig_error(int code, OnigErrorInfo* info) {
+  OnigUChar buf[ONIG_MAX_ERROR_MESSAGE_LEN];
+  const int n = info ? onig_error_code_to_str(buf, code, info) : onig_error_code_to_str(buf, code);
+  return std::string(reinterpret_cast<const char*>(buf), n > 0 ? static_cast<std::size_t>(n) : 0);
+}
+
+void init_oniguruma() {
+  static std::once_flag once;
+  std::call_once(once, [] {
+    OnigEncoding encodings[] = {ONIG_ENCODING_UTF8};
+    onig_initialize(encodings, 1);
+  });
+}
+
+// The Rust `regex` crate's escape(), which the crate applies to String patterns.
+bool is_rust_regex_meta(char c) {
+  switch (c) {
+    case '\\': case '.': case '+': case '*': case '?': case '(': case ')': case '|': case '[':
+    case ']': case '{': case '}': case '^': case '$': case '#': case '&': case '-': case '~':
+      return true;
+    default:
+      return false;
+  }
+}
+
+}  // namespace
+
 struct OnigRegex::Compiled {
+  RegexEngine engine = RegexEngine::oniguruma;
+  regex_t* onig = nullptr;
   pcre2_code* code = nullptr;
   bool jit = false;
   ~Compiled() {
+    if (onig) onig_free(onig);
     if (code) pcre2_code_free(code);
   }
 };
 
 OnigRegex::OnigRegex(const std::string& onig_pattern, const std::string& where)
     : compiled_(new Compiled) {
+  compiled_->engine = detail::regex_engine();
+  if (compiled_->engine == RegexEngine::oniguruma) {
+    init_oniguruma();
+    // As the onig crate's Regex::new: no options, the default (Oniguruma) syntax, UTF-8.
+    OnigErrorInfo info{};
+    const auto* p = reinterpret_cast<const OnigUChar*>(onig_pattern.data());
+    const int rc = onig_new(&compiled_->onig, p, p + onig_pattern.size(), ONIG_OPTION_NONE,
+                            ONIG_ENCODING_UTF8, ONIG_SYNTAX_DEFAULT, &info);
+    if (rc != ONIG_NORMAL) {
+      compiled_->onig = nullptr;
+      throw Error(ErrorCode::format, where + ": cannot compile regex '" + onig_pattern +
+                                         "': " + onig_error(rc, &info));
+    }
+    return;
+  }
   const std::string pattern = translate_onig_pattern(onig_pattern, where);
   pcre2_compile_context* ctx = pcre2_compile_context_create(nullptr);
   pcre2_set_newline(ctx, PCRE2_NEWLINE_LF);  // onig: only "\n" ends a line for ^ $ and .
@@ -146,6 +206,13 @@ OnigRegex::OnigRegex(const std::string& onig_pattern, const std::string& where)
 
 OnigRegex OnigRegex::literal(std::string_view literal, const std::string& where) {
   std::string escaped;
+  if (detail::regex_engine() == RegexEngine::oniguruma) {
+    for (char c : literal) {
+      if (is_rust_regex_meta(c)) escaped += '\\';
+      escaped += c;
+    }
+    return OnigRegex(escaped, where);
+  }
   for (char c : literal) {
     const auto u = static_cast<unsigned char>(c);
     if (u < 0x80 && !((c >= '0' && c <= '9') || (c >= 'a' && c <= 'z') || (c >= 'A' && c <= 'Z'))) {
@@ -185,10 +252,48 @@ pcre2_match_data* thread_match_data() {
   return data.get();
 }
 
+struct RegionDeleter {
+  void operator()(OnigRegion* r) const { onig_region_free(r, 1); }
+};
+
+OnigRegion* thread_region() {
+  thread_local std::unique_ptr<OnigRegion, RegionDeleter> region(onig_region_new());
+  return region.get();
+}
+
 }  // namespace
 
+// The onig crate's FindMatches: search from the end of the previous match over the whole text
+// (so anchors and look-behind see it), never yielding an empty match right where the previous
+// match ended (it steps one character forward and searches again).
 std::vector<std::pair<std::size_t, std::size_t>> OnigRegex::find_all(std::string_view text) const {
   std::vector<std::pair<std::size_t, std::size_t>> out;
+  if (compiled_->engine == RegexEngine::oniguruma) {
+    OnigRegion* region = thread_region();
+    const auto* str = reinterpret_cast<const OnigUChar*>(text.data());
+    const OnigUChar* end = str + text.size();
+    std::size_t last_end = 0;
+    bool have_last = false;
+    std::size_t last_match_end = 0;
+    while (last_end <= text.size()) {
+      onig_region_clear(region);
+      const int rc =
+          onig_search(compiled_->onig, str, end, str + last_end, end, region, ONIG_OPTION_NONE);
+      if (rc == ONIG_MISMATCH) break;
+      if (rc < 0) throw Error(ErrorCode::internal, "regex search failed: " + onig_error(rc, nullptr));
+      const auto s = static_cast<std::size_t>(region->beg[0]);
+      const auto e = static_cast<std::size_t>(region->end[0]);
+      if (s == e && have_last && last_match_end == e) {
+        last_end += last_end < text.size() ? utf8_len(static_cast<unsigned char>(text[last_end])) : 1;
+        continue;
+      }
+      last_end = e;
+      have_last = true;
+      last_match_end = e;
+      out.emplace_back(s, e);
+    }
+    return out;
+  }
   pcre2_match_data* md = thread_match_data();
   const auto* subject = reinterpret_cast<PCRE2_SPTR>(text.data());
   std::size_t last_end = 0;

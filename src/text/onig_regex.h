@@ -30,6 +30,13 @@ class OnigRegex {
   std::unique_ptr<Compiled> compiled_;
 };
 
+// Which engine regexes compiled from now on use (measurement only; Oniguruma by default).
+enum class RegexEngine { oniguruma, pcre2 };
+namespace detail {
+void set_regex_engine(RegexEngine engine);
+RegexEngine regex_engine();
+}  // namespace detail
+
 // Exposed for tests: the PCRE2 pattern a given Oniguruma pattern becomes.
 std::string translate_onig_pattern(std::string_view pattern, const std::string& where);
 
