@@ -155,6 +155,27 @@ WORDS = ["pick", "up", "the", "cube", "Robot", "arm", "left", "x", "a", "OK", "i
 SEPARATORS = ["", " ", "  ", "\n", "\t", " \n", "\u00a0", "\u3000", "-", ".", ",", "'s", "1", "12"]
 
 
+def group_version(name):
+    """The Unicode version a group's code points were added in ("15.1" for u15_1_*), or None."""
+    for prefix, version in (("u15_1_", "15.1"), ("u14_", "14.0"), ("u15_", "15.0"), ("u16_", "16.0")):
+        if name.startswith(prefix):
+            return version
+    return None
+
+
+VERSION_OF = {}  # code point -> the Unicode version it was added in, for the versioned groups
+for _name, _ranges in GROUPS:
+    if group_version(_name):
+        for _a, _b in _ranges:
+            for _p in range(_a, _b + 1):
+                VERSION_OF[_p] = group_version(_name)
+
+
+def newest_version(text):
+    versions = [VERSION_OF[ord(c)] for c in text if ord(c) in VERSION_OF]
+    return max(versions, key=lambda v: tuple(map(int, v.split(".")))) if versions else None
+
+
 def sample(ranges, k):
     """Up to k code points spread evenly over the ranges (first and last included), surrogates skipped."""
     points = []
@@ -283,7 +304,7 @@ def main():
     meta = {
         "generator": "tools/oracle/unicode_fixtures.py" + (" --every-code-point" if args.every_code_point else ""),
         "tokenizers": tokenizers.__version__, "transformers": transformers.__version__,
-        "python": sys.version.split()[0], "patterns": PATTERNS, "tokenizers_dirs": {
+        "python": sys.version.split()[0], "python_unicode": unicodedata.unidata_version, "patterns": PATTERNS, "tokenizers_dirs": {
             k: str(v.relative_to(REPO)) for k, v in TOKENIZERS.items()},
     }
     split = splitters()
@@ -294,8 +315,9 @@ def main():
     ids = {name: batch(cases) for name, (_, batch) in enc.items()}
     rows = [{"meta": meta}]
     for i, text in enumerate(cases):
+        version = newest_version(text)
         rows.append({
-            "i": i, "text": text,
+            "i": i, "text": text, **({"unicode": version} if version else {}),
             "splits": {name: [piece for piece, _ in sp.pre_tokenize_str(text)] for name, sp in split.items()},
             "ids": {name: ids[name][i] for name in enc},
         })
