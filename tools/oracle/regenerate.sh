@@ -13,6 +13,8 @@ for gen in tokenizer_fixtures.py vision_fixtures.py; do
 done
 echo "== smolvla fixtures"
 "$here/run.sh" "$here/smolvla_oracle.py" fixtures --out "$root/tests/fixtures/smolvla"
+echo "== tokenizer Unicode coverage (reads the tokenizer fixtures and the smolvla cam1_stats checkpoint's vlm/)"
+"$here/run.sh" "$here/unicode_fixtures.py"
 echo "== real-time chunking fixture (reads the smolvla cam1_stats case)"
 "$here/run.sh" "$here/rtc_oracle.py" --out "$root/tests/fixtures/smolvla_rtc"
 echo "== demo policy"
