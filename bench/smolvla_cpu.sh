@@ -61,23 +61,33 @@ for precision in fp32 bf16 fp16; do
     --out "$work/tether_$precision.safetensors" > "$work/tether_$precision.json"
 done
 
-tools/oracle/run.sh - "$work" <<'PY'
+# The machine's fp32 GEMM peak, measured now on the model's own GEMM shapes (best of OpenBLAS, oneDNN, panel).
+echo "fp32 GEMM peak on this machine (bench/gemm_shapes)..." >&2
+build/release/bench/gemm_shapes --threads "$(nproc)" --min-batch-ms 20 > "$work/gemm.txt"
+peak=$(sed -n 's/^best measured fp32 GEMM rate: \([0-9.]*\) GFLOP.*/\1/p' "$work/gemm.txt")
+
+tools/oracle/run.sh - "$work" "$peak" <<'PY'
 import json, sys
 from safetensors.torch import load_file
-w = sys.argv[1]
+w, peak = sys.argv[1], float(sys.argv[2])
 ref = json.load(open(w + "/ref.json"))
 a = load_file(w + "/ref.safetensors")["actions"]
 r_ms = ref["median_ms"]
-print(f"{'engine':<22}{'median ms':>12}{'speed-up':>10}{'peak RSS MB':>14}{'RSS ratio':>11}{'max |diff| vs lerobot':>24}")
-print(f"{'lerobot (PyTorch fp32)':<22}{r_ms:>12.1f}{1.0:>9.2f}x{ref['peak_rss_mb']:>14.0f}{1.0:>11.2f}{'-':>24}")
 fp32 = json.load(open(f"{w}/tether_fp32.json"))
+gflop = fp32["gflop_per_chunk"]  # the same model: the same matrix-product work for either engine
+def of_peak(ms):
+    return gflop / (ms / 1e3) / peak
+print(f"GEMM work per chunk {gflop:.1f} GFLOP; this machine's measured fp32 GEMM peak {peak:.1f} GFLOP/s "
+      f"(floor {gflop / peak * 1e3:.0f} ms)")
+print(f"{'engine':<22}{'median ms':>12}{'speed-up':>10}{'of GEMM peak':>14}{'peak RSS MB':>14}{'RSS ratio':>11}{'max |diff| vs lerobot':>24}")
+print(f"{'lerobot (PyTorch fp32)':<22}{r_ms:>12.1f}{1.0:>9.2f}x{of_peak(r_ms):>14.2f}{ref['peak_rss_mb']:>14.0f}{1.0:>11.2f}{'-':>24}")
 for precision in ("fp32", "bf16", "fp16"):
     t = json.load(open(f"{w}/tether_{precision}.json"))
     b = load_file(f"{w}/tether_{precision}.safetensors")["actions"]
     diff = (a.reshape(b.shape) - b).abs().max().item()
     t_ms = t["latency_ms"]["p50"]
     name = "tether " + t["inference_mode"].removeprefix("cpu-")
-    print(f"{name:<22}{t_ms:>12.1f}{r_ms / t_ms:>9.2f}x{t['peak_rss_mb']:>14.0f}{t['peak_rss_mb'] / ref['peak_rss_mb']:>11.2f}{diff:>24.3e}")
+    print(f"{name:<22}{t_ms:>12.1f}{r_ms / t_ms:>9.2f}x{of_peak(t_ms):>14.2f}{t['peak_rss_mb']:>14.0f}{t['peak_rss_mb'] / ref['peak_rss_mb']:>11.2f}{diff:>24.3e}")
     print("    stages ms: " + "  ".join(f"{k} {v:.1f}" for k, v in t["stages_ms"].items()))
     print(f"    {t['compute']}; vs tether fp32: {t_ms / fp32['latency_ms']['p50']:.2f}x latency, "
           f"{t['peak_rss_mb'] / fp32['peak_rss_mb']:.2f}x peak RSS")

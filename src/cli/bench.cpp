@@ -137,6 +137,9 @@ int run_bench(const BenchArgs& a) {
        {{"preprocess", mean(pre)}, {"vision", mean(vision)}, {"prefix", mean(prefix)}, {"denoise", mean(denoise)},
         {"post", mean(post)}}},
       {"throughput_per_s", double(a.iterations) * a.batch / wall_s},
+      // Matrix-product work (2 flops per multiply-add) per chunk, and the rate the mean latency achieves.
+      {"gflop_per_chunk", last.flops / double(a.batch) / 1e9},
+      {"gflop_per_s", last.flops / (mean(total) / 1e3) / 1e9},
       {"peak_rss_mb", peak_rss_mb()},
       {"blas", cpu::blas_name()},
       {"gemm", cpu::gemm_name(policy->spec().precision)},
@@ -159,6 +162,8 @@ int run_bench(const BenchArgs& a) {
               report["latency_ms"]["p99"].get<double>(), report["latency_ms"]["max"].get<double>());
   std::printf("  stages ms    preprocess %.2f  vision %.2f  prefix %.2f  denoise %.2f  post %.2f\n", mean(pre),
               mean(vision), mean(prefix), mean(denoise), mean(post));
+  std::printf("  compute      %.2f GFLOP per chunk, %.1f GFLOP/s achieved\n", report["gflop_per_chunk"].get<double>(),
+              report["gflop_per_s"].get<double>());
   std::printf("  throughput   %.2f chunks/s\n  peak RSS     %.1f MB\n  load         %.1f ms\n",
               report["throughput_per_s"].get<double>(), peak_rss_mb(), load_ms);
   if (report.contains("adaptive")) {

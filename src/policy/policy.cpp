@@ -115,6 +115,7 @@ Prediction Policy::predict(const std::vector<Observation>& batch) {
 
   models::ModelOutput m = model_->predict(inputs);
   out.timings = m.timings;
+  out.flops = m.flops;
 
   if (debug_)
     debug_("out.actions_normalized", Tensor{DType::f32, {m.batch, m.chunk_size, m.action_dim}, m.actions.data(), nullptr});

@@ -45,6 +45,7 @@ struct Prediction {
   std::vector<ActionChunk> items;
   models::StageTimings timings;
   double normalize_ms = 0, postprocess_ms = 0, total_ms = 0;
+  double flops = 0;  // matrix-product flops of the forward pass (whole batch), as the model's blocks count them
 };
 
 class Policy {
