@@ -61,7 +61,9 @@ struct Fixture {
         metrics("test", ""),
         host([f = fail] { return fake_engine(f); }, opts.batch, opts.wedges, metrics),
         pipeline(opts, host, metrics) {
-    if (load) EXPECT_TRUE(host.load());
+    if (load) {
+      EXPECT_TRUE(host.load());
+    }
   }
   ~Fixture() { host.stop(); }
 
