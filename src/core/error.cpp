@@ -10,6 +10,9 @@ const char* error_code_name(ErrorCode code) {
     case ErrorCode::format: return "format";
     case ErrorCode::unsupported: return "unsupported";
     case ErrorCode::internal: return "internal";
+    case ErrorCode::unauthenticated: return "unauthenticated";
+    case ErrorCode::unavailable: return "unavailable";
+    case ErrorCode::timeout: return "timeout";
   }
   return "unknown";
 }

@@ -13,6 +13,9 @@ enum class ErrorCode {
   format,            // a file exists but its contents are malformed or lie about themselves
   unsupported,       // well-formed, but Tether does not implement it (yet)
   internal,          // a bug: an invariant inside Tether broke
+  unauthenticated,   // a request without the API key the server requires, or with a wrong one
+  unavailable,       // cannot serve now but may shortly: a full queue, a model not ready, an open circuit
+  timeout,           // a deadline passed before the work finished
 };
 
 const char* error_code_name(ErrorCode code);

@@ -22,6 +22,16 @@ void complete(const Completion& done, std::exception_ptr error, BatchResult resu
 
 }  // namespace
 
+ErrorCode BatchError::batch_error_code(Kind kind) {
+  switch (kind) {
+    case Kind::queue_full:
+    case Kind::stopped: return ErrorCode::unavailable;
+    case Kind::deadline_exceeded: return ErrorCode::timeout;
+    case Kind::inference_failed: return ErrorCode::internal;
+  }
+  return ErrorCode::internal;
+}
+
 Batcher::Batcher(PredictFn predict, BatcherOptions options) : predict_(std::move(predict)), options_(options) {
   options_.max_batch = std::max(1, options_.max_batch);
   options_.max_queue = std::max(1, options_.max_queue);

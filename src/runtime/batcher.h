@@ -9,10 +9,10 @@
 #include <functional>
 #include <future>
 #include <mutex>
-#include <stdexcept>
 #include <thread>
 #include <vector>
 
+#include "core/error.h"
 #include "policy/policy.h"
 
 namespace tether::runtime {
@@ -25,12 +25,15 @@ struct BatcherOptions {
   int max_queue = 64;             // requests waiting (not yet in a forward pass); beyond it submit fails at once
 };
 
-// Why a request did not get actions. The server maps each kind to a status and a stable error code.
-class BatchError : public std::runtime_error {
+// Why a request did not get actions. The server maps each kind to a status and a stable error code; as a
+// tether::Error it carries the ErrorCode of its kind (see batch_error_code).
+class BatchError : public Error {
  public:
   enum class Kind { queue_full, inference_failed, deadline_exceeded, stopped };
-  BatchError(Kind kind, const std::string& message) : std::runtime_error(message), kind_(kind) {}
+  BatchError(Kind kind, const std::string& message) : Error(batch_error_code(kind), message), kind_(kind) {}
   Kind kind() const { return kind_; }
+  // queue_full, stopped: unavailable; deadline_exceeded: timeout; inference_failed: internal.
+  static ErrorCode batch_error_code(Kind kind);
 
  private:
   Kind kind_;

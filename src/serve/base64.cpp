@@ -1,21 +1,24 @@
-// Base64 codec: a 256-entry reverse table, four characters to three bytes.
+// Base64 through EVP_DecodeBlock/EVP_EncodeBlock. OpenSSL is lenient where Tether is strict: it trims leading and
+// trailing whitespace, reads '=' anywhere as a zero group and never reports padding, so those checks are made here
+// (cheaply: the ends, one memchr) and the group-by-group work is the library's.
 #include "serve/base64.h"
 
-#include <array>
+#include <openssl/evp.h>
+
+#include <algorithm>
+#include <climits>
+#include <cstring>
 
 namespace tether::serve {
 
 namespace {
 
-constexpr char kAlphabet[] = "ABCDEFGHIJKLMNOPQRSTUVWXYZabcdefghijklmnopqrstuvwxyz0123456789+/";
-
-constexpr std::array<int8_t, 256> make_reverse() {
-  std::array<int8_t, 256> r{};
-  for (auto& v : r) v = -1;
-  for (int i = 0; i < 64; ++i) r[uint8_t(kAlphabet[i])] = int8_t(i);
-  return r;
+bool in_alphabet(char c) {
+  return (c >= 'A' && c <= 'Z') || (c >= 'a' && c <= 'z') || (c >= '0' && c <= '9') || c == '+' || c == '/';
 }
-constexpr std::array<int8_t, 256> kReverse = make_reverse();
+
+// Largest input handed to one EVP_DecodeBlock call: a multiple of 4 that fits its int length.
+constexpr std::size_t kMaxBlockChars = std::size_t(INT_MAX / 4) * 4;
 
 }  // namespace
 
@@ -23,6 +26,11 @@ std::optional<std::vector<uint8_t>> base64_decode(std::string_view text, std::st
   auto fail = [&](const std::string& msg) -> std::optional<std::vector<uint8_t>> {
     if (why) *why = msg;
     return std::nullopt;
+  };
+  auto first_invalid = [&](std::size_t n) {
+    std::size_t i = 0;
+    while (i < n && in_alphabet(text[i])) ++i;
+    return fail("invalid base64 character at offset " + std::to_string(i));
   };
   std::size_t n = text.size();
   // Up to two '=' at the very end; anywhere else they are an error like any other stray character.
@@ -33,49 +41,52 @@ std::optional<std::vector<uint8_t>> base64_decode(std::string_view text, std::st
   }
   if (pad > 0 && (n + pad) % 4 != 0) return fail("base64 padding does not complete a 4-character group");
   if (n % 4 == 1) return fail("base64 length " + std::to_string(text.size()) + " is impossible (a lone 6-bit group)");
-  std::vector<uint8_t> out;
-  out.reserve(n / 4 * 3 + 2);
-  uint32_t acc = 0;
-  int bits = 0;
-  for (std::size_t i = 0; i < n; ++i) {
-    const int8_t v = kReverse[uint8_t(text[i])];
-    if (v < 0) return fail("invalid base64 character at offset " + std::to_string(i));
-    acc = (acc << 6) | uint32_t(v);
-    bits += 6;
-    if (bits >= 8) {
-      bits -= 8;
-      out.push_back(uint8_t(acc >> bits));
-      acc &= (1u << bits) - 1;
-    }
+
+  const std::size_t whole = n / 4 * 4;  // full groups; the last 2 or 3 characters (if any) are decoded below
+  std::vector<uint8_t> out(whole / 4 * 3 + 2);
+  const auto* in = reinterpret_cast<const unsigned char*>(text.data());
+  // OpenSSL would trim whitespace at either end of a block and accept '=' inside it: neither may pass.
+  if (n > 0 && (!in_alphabet(text[0]) || !in_alphabet(text[n - 1]))) return first_invalid(n);
+  if (std::memchr(text.data(), '=', n) != nullptr) return first_invalid(n);
+  std::size_t written = 0;
+  for (std::size_t at = 0; at < whole;) {
+    const std::size_t len = std::min(kMaxBlockChars, whole - at);
+    // Block boundaries inside the text must not be trimmed either.
+    if (!in_alphabet(text[at]) || !in_alphabet(text[at + len - 1])) return first_invalid(n);
+    const int got = EVP_DecodeBlock(out.data() + written, in + at, int(len));
+    if (got < 0) return first_invalid(n);
+    written += std::size_t(got);
+    at += len;
   }
-  // Canonical encodings leave the unused low bits of the last character zero; anything else is corruption.
-  if (acc != 0) return fail("base64 ends with non-zero padding bits (truncated or corrupted data)");
+  if (const std::size_t tail = n - whole; tail > 0) {
+    // 2 or 3 characters: completed with 'A' (zero bits) into one group, whose unused bits must then be zero.
+    unsigned char group[4] = {'A', 'A', 'A', 'A'};
+    std::memcpy(group, in + whole, tail);
+    unsigned char bytes[3];
+    if (EVP_DecodeBlock(bytes, group, 4) != 3) return first_invalid(n);
+    const std::size_t keep = tail - 1;  // 2 characters carry 1 byte, 3 carry 2
+    // Canonical encodings leave the unused low bits of the last character zero; anything else is corruption.
+    for (std::size_t i = keep; i < 3; ++i)
+      if (bytes[i] != 0) return fail("base64 ends with non-zero padding bits (truncated or corrupted data)");
+    std::memcpy(out.data() + written, bytes, keep);
+    written += keep;
+  }
+  out.resize(written);
   return out;
 }
 
 std::string base64_encode(const uint8_t* bytes, std::size_t size) {
   std::string out;
-  out.reserve((size + 2) / 3 * 4);
-  std::size_t i = 0;
-  for (; i + 3 <= size; i += 3) {
-    const uint32_t v = uint32_t(bytes[i]) << 16 | uint32_t(bytes[i + 1]) << 8 | bytes[i + 2];
-    out += kAlphabet[v >> 18];
-    out += kAlphabet[(v >> 12) & 63];
-    out += kAlphabet[(v >> 6) & 63];
-    out += kAlphabet[v & 63];
+  // EVP_EncodeBlock writes a terminating NUL after the 4-character groups; it is trimmed off.
+  constexpr std::size_t kMaxBlockBytes = std::size_t(INT_MAX / 4 / 3) * 3;  // whole groups, output within int
+  out.resize((size + 2) / 3 * 4 + 1);
+  std::size_t written = 0;
+  for (std::size_t at = 0; at < size;) {
+    const std::size_t len = std::min(kMaxBlockBytes, size - at);
+    written += std::size_t(EVP_EncodeBlock(reinterpret_cast<unsigned char*>(out.data()) + written, bytes + at, int(len)));
+    at += len;
   }
-  if (size - i == 1) {
-    const uint32_t v = uint32_t(bytes[i]) << 16;
-    out += kAlphabet[v >> 18];
-    out += kAlphabet[(v >> 12) & 63];
-    out += "==";
-  } else if (size - i == 2) {
-    const uint32_t v = uint32_t(bytes[i]) << 16 | uint32_t(bytes[i + 1]) << 8;
-    out += kAlphabet[v >> 18];
-    out += kAlphabet[(v >> 12) & 63];
-    out += kAlphabet[(v >> 6) & 63];
-    out += '=';
-  }
+  out.resize(written);
   return out;
 }
 

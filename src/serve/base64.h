@@ -1,5 +1,5 @@
-// Base64 (RFC 4648 standard alphabet) for image payloads in requests. Hand-written: nlohmann/json has no codec and
-// Beast's lives in its detail/ namespace (not a public API); the decoder must also report where the input is bad.
+// Base64 (RFC 4648 standard alphabet) for image payloads in requests, over OpenSSL's block codec. The checks
+// around it keep Tether's stricter contract, and its errors say what is wrong and where.
 #pragma once
 
 #include <cstdint>

@@ -229,3 +229,19 @@ TEST(Batcher, ThrowingCompletionDoesNotKillTheWorker) {
   batcher.submit(obs(0, 0), far(), [](std::exception_ptr, BatchResult) { throw std::runtime_error("caller bug"); });
   EXPECT_EQ(batcher.submit(obs(1, 1), far()).get().chunk.actions, FakeModel::expected(obs(1, 1)));
 }
+
+TEST(BatchError, IsATetherErrorWithTheCodeOfItsKind) {
+  const std::pair<BatchError::Kind, tether::ErrorCode> kinds[] = {
+      {BatchError::Kind::queue_full, tether::ErrorCode::unavailable},
+      {BatchError::Kind::stopped, tether::ErrorCode::unavailable},
+      {BatchError::Kind::deadline_exceeded, tether::ErrorCode::timeout},
+      {BatchError::Kind::inference_failed, tether::ErrorCode::internal}};
+  for (const auto& [kind, code] : kinds) {
+    try {
+      throw BatchError(kind, "why");
+    } catch (const tether::Error& e) {
+      EXPECT_EQ(e.code(), code);
+      EXPECT_STREQ(e.what(), "why");
+    }
+  }
+}

@@ -51,3 +51,40 @@ TEST(Base64, RejectsMalformedInputWithAReason) {
   base64_decode("Zm9v*A==", &why);
   EXPECT_NE(why.find("offset 4"), std::string::npos) << why;
 }
+
+// OpenSSL's block decoder trims whitespace at the ends and reads '=' anywhere as zeros; Tether's contract does not.
+TEST(Base64, RejectsWhatTheBlockDecoderWouldForgiveAtTheRightOffset) {
+  const std::pair<std::string, std::string> cases[] = {
+      {" Zm9vYg", "offset 0"},          {"\tZm9vYg=", "offset 0"},     {"Zm9v  ", "offset 4"},
+      {"Zm9vZm9v-_", "offset 8"},      {"Zm9vYg\n", "offset 6"},       {"Zm9vYg\r\n", "offset 6"},
+      {"Zm9v=Zm9", "offset 4"},        {"Zm9vZg=A", "offset 6"},       {"Zm9v\xC3\xA9Zm", "offset 4"},
+      {"Zm9vZm9vZm9vZm9vZ m9vZg", "offset 17"}};
+  for (const auto& [bad, where] : cases) {
+    std::string why;
+    EXPECT_FALSE(base64_decode(bad, &why).has_value()) << bad;
+    EXPECT_NE(why.find("invalid base64 character at " + where), std::string::npos) << bad << ": " << why;
+  }
+}
+
+TEST(Base64, PaddingAndTrailingBitsAreCheckedBesideTheLibrary) {
+  std::string why;
+  EXPECT_FALSE(base64_decode("Zm9vZ=", &why).has_value());
+  EXPECT_NE(why.find("padding does not complete"), std::string::npos) << why;
+  EXPECT_FALSE(base64_decode("Zm9vYh", &why).has_value());  // 'h' leaves non-zero unused bits
+  EXPECT_NE(why.find("non-zero padding bits"), std::string::npos) << why;
+  EXPECT_FALSE(base64_decode("Zm9vYmF=", &why).has_value());  // 'F' leaves non-zero unused bits
+  EXPECT_NE(why.find("non-zero padding bits"), std::string::npos) << why;
+  // The decoded length counts only the real bytes, padded or not.
+  EXPECT_EQ(base64_decode("Zm9vYmE=")->size(), 5u);
+  EXPECT_EQ(base64_decode("Zm9vYmE")->size(), 5u);
+  EXPECT_EQ(base64_decode("Zm9vYg==")->size(), 4u);
+  EXPECT_EQ(base64_decode("")->size(), 0u);
+}
+
+TEST(Base64, LargePayloadRoundTrips) {
+  std::vector<uint8_t> bytes(512 * 512 * 3 + 1);
+  for (std::size_t i = 0; i < bytes.size(); ++i) bytes[i] = uint8_t(i * 131 + (i >> 9));
+  const auto dec = base64_decode(base64_encode(bytes.data(), bytes.size()));
+  ASSERT_TRUE(dec.has_value());
+  EXPECT_EQ(*dec, bytes);
+}

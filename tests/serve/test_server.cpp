@@ -215,15 +215,6 @@ TEST(Server, AuthGuardsActAndConfigOnly) {
   for (const char* path : {"/health", "/ready", "/live", "/metrics"}) EXPECT_EQ(http_get(srv.port(), path).status, 200) << path;
 }
 
-TEST(Server, KeysCompareExactly) {
-  EXPECT_TRUE(keys_equal("abc", "abc"));
-  EXPECT_FALSE(keys_equal("abd", "abc"));
-  EXPECT_FALSE(keys_equal("ab", "abc"));
-  EXPECT_FALSE(keys_equal("abcd", "abc"));
-  EXPECT_FALSE(keys_equal("", "abc"));
-  EXPECT_FALSE(keys_equal(std::string("abc\0", 4), "abc"));
-}
-
 TEST(Server, RoutingErrors) {
   FakeEngine engine;
   TestServer srv(engine);

@@ -1,0 +1,192 @@
+// The /act pipeline called directly, as a non-HTTP transport would: answers, auth, readiness, the body limit, the
+// fallback marker, metrics and the trace line, with no socket in between.
+#include <gtest/gtest.h>
+#include <unistd.h>
+
+#include <boost/asio.hpp>
+#include <filesystem>
+#include <fstream>
+
+#include "core/error.h"
+#include "serve/act_pipeline.h"
+#include "serve/base64.h"
+
+using namespace tether;
+using namespace tether::serve;
+namespace net = boost::asio;
+
+namespace {
+
+// State 2, action 2, chunk 3: actions are state[0] + row * 10 + col, so a reply is checked exactly.
+Engine fake_engine(std::shared_ptr<std::atomic<bool>> fail) {
+  Engine e;
+  e.spec.family = "fake";
+  e.spec.cameras = {"observation.images.front"};
+  e.spec.state_dim = 2;
+  e.spec.action_dim = 2;
+  e.spec.chunk_size = 3;
+  e.spec.image_height = e.spec.image_width = 4;
+  e.model_hash = "sha256:feed";
+  e.model_name = "fake-model";
+  e.gemm = "none";
+  e.predict = [fail](const std::vector<policy::Observation>& batch) {
+    if (*fail) throw Error(ErrorCode::internal, "fake forward pass failed");
+    policy::Prediction p;
+    for (const auto& o : batch) {
+      policy::ActionChunk c;
+      c.chunk_size = 3;
+      c.action_dim = 2;
+      for (int r = 0; r < 3; ++r)
+        for (int k = 0; k < 2; ++k) c.actions.push_back(o.state[0] + float(r * 10 + k));
+      p.items.push_back(std::move(c));
+    }
+    return p;
+  };
+  return e;
+}
+
+std::string act_body(float state0) {
+  std::vector<uint8_t> px(4 * 4 * 3, 100);
+  const Json j = {{"instruction", "go"},
+                  {"state", {state0, 0}},
+                  {"image", {{"data", base64_encode(px.data(), px.size())}, {"shape", {4, 4, 3}}}},
+                  {"seed", 1}};
+  return j.dump();
+}
+
+// A pipeline over a host loaded in the constructor (or not, with load = false).
+struct Fixture {
+  explicit Fixture(ServerOptions o = {}, bool load = true)
+      : opts(std::move(o)),
+        metrics("test", ""),
+        host([f = fail] { return fake_engine(f); }, opts.batch, opts.wedges, metrics),
+        pipeline(opts, host, metrics) {
+    if (load) {
+      EXPECT_TRUE(host.load());
+    }
+  }
+  ~Fixture() { host.stop(); }
+
+  ActResponse run(const std::string& body, RequestContext ctx = {}) {
+    if (ctx.request_id.empty()) ctx.request_id = "req-1";
+    ctx.received = std::chrono::steady_clock::now();
+    net::io_context ioc;
+    auto future = net::co_spawn(ioc, pipeline.run(body, ctx), net::use_future);
+    ioc.run();
+    return future.get();
+  }
+
+  std::shared_ptr<std::atomic<bool>> fail = std::make_shared<std::atomic<bool>>(false);
+  ServerOptions opts;
+  Metrics metrics;
+  ModelHost host;
+  ActPipeline pipeline;
+};
+
+std::string code_of(const ActResponse& r) { return r.body["error"]["code"].get<std::string>(); }
+
+}  // namespace
+
+TEST(ActPipeline, AnswersWithTheChunkAndCountsTheRequest) {
+  Fixture f;
+  const ActResponse r = f.run(act_body(5));
+  ASSERT_EQ(r.status, 200) << r.body.dump();
+  EXPECT_TRUE(r.ok());
+  EXPECT_EQ(r.body["num_actions"], 3);
+  EXPECT_EQ(r.body["actions"][2][1].get<float>(), 5 + 21);
+  EXPECT_EQ(r.body["request_id"], "req-1");
+  EXPECT_EQ(r.body["model_hash"], "sha256:feed");
+  EXPECT_NE(f.metrics.render().find("tether_requests_total{endpoint=\"/act\",status=\"200\"} 1"), std::string::npos);
+}
+
+TEST(ActPipeline, ErrorsAreResponsesNotExceptions) {
+  Fixture f;
+  ActResponse r = f.run("{not json");
+  EXPECT_EQ(r.status, 400);
+  EXPECT_EQ(code_of(r), "bad_json");
+  *f.fail = true;
+  r = f.run(act_body(0));
+  EXPECT_EQ(r.status, 500);
+  EXPECT_EQ(code_of(r), "inference_failed");
+  const std::string m = f.metrics.render();
+  EXPECT_NE(m.find("tether_requests_total{endpoint=\"/act\",status=\"400\"} 1"), std::string::npos) << m;
+  EXPECT_NE(m.find("tether_requests_total{endpoint=\"/act\",status=\"500\"} 1"), std::string::npos) << m;
+}
+
+TEST(ActPipeline, ChecksTheKeyTheTransportPresents) {
+  ServerOptions o;
+  o.api_key = "s3cret";
+  Fixture f(o);
+  RequestContext ctx;
+  ActResponse r = f.run(act_body(0), ctx);
+  EXPECT_EQ(r.status, 401);
+  EXPECT_EQ(code_of(r), "unauthorized");
+  ctx.api_key = "wrong";
+  EXPECT_EQ(f.run(act_body(0), ctx).status, 401);
+  ctx.api_key = "s3cret";
+  EXPECT_EQ(f.run(act_body(0), ctx).status, 200);
+}
+
+TEST(ActPipeline, RefusesBeforeTheModelIsReady) {
+  Fixture f({}, /*load=*/false);
+  const ActResponse r = f.run(act_body(0));
+  EXPECT_EQ(r.status, 503);
+  EXPECT_EQ(code_of(r), "not_ready");
+  EXPECT_EQ(r.retry_after_s, 1);
+}
+
+TEST(ActPipeline, EnforcesTheBodyLimitForTransportsThatHandOverWholeMessages) {
+  ServerOptions o;
+  o.max_body_bytes = 64;
+  Fixture f(o);
+  const ActResponse r = f.run(act_body(0));
+  EXPECT_EQ(r.status, 413);
+  EXPECT_EQ(code_of(r), "body_too_large");
+}
+
+TEST(ActPipeline, AForwardedRequestIsNeverForwardedAgain) {
+  ServerOptions o;
+  o.wedges.cloud_fallback = "http://127.0.0.1:1";  // nothing listens: the attempt fails fast
+  o.wedges.fallback_timeout_ms = 500;
+  Fixture f(o);
+  *f.fail = true;
+  ActResponse r = f.run(act_body(0));
+  EXPECT_EQ(r.status, 500);
+  EXPECT_NE(r.body["error"]["message"].get<std::string>().find("fallback unreachable"), std::string::npos)
+      << r.body.dump();
+  RequestContext forwarded;
+  forwarded.from_fallback = true;
+  r = f.run(act_body(0), forwarded);
+  EXPECT_EQ(r.status, 500);
+  EXPECT_EQ(r.body["error"]["message"].get<std::string>().find("fallback"), std::string::npos) << r.body.dump();
+  const std::string m = f.metrics.render();
+  EXPECT_NE(m.find("tether_fallback_total{outcome=\"failure\"} 1\n"), std::string::npos) << m;
+}
+
+TEST(ActPipeline, RecordsATraceLineForSuccessAndFailure) {
+  const auto dir = std::filesystem::temp_directory_path() / ("tether_pipeline_trace_" + std::to_string(::getpid()));
+  std::filesystem::remove_all(dir);
+  ServerOptions o;
+  runtime::TraceOptions t;
+  t.dir = dir.string();
+  t.fsync = runtime::TraceOptions::Fsync::every_line;
+  o.wedges.record = t;
+  {
+    Fixture f(o);
+    ASSERT_EQ(f.run(act_body(1)).status, 200);
+    ASSERT_EQ(f.run("{}").status, 400);
+  }
+  std::vector<Json> lines;
+  for (const auto& entry : std::filesystem::directory_iterator(dir)) {
+    std::ifstream in(entry.path());
+    for (std::string line; std::getline(in, line);)
+      if (!line.empty()) lines.push_back(Json::parse(line));
+  }
+  ASSERT_EQ(lines.size(), 2u);
+  EXPECT_EQ(lines[0]["status"], "success");
+  EXPECT_EQ(lines[0]["model"], "fake-model");
+  EXPECT_EQ(lines[0]["request_id"], "req-1");
+  EXPECT_EQ(lines[1]["status"], "failed");
+  EXPECT_EQ(lines[1]["http_status"], 400);
+  std::filesystem::remove_all(dir);
+}
