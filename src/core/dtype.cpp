@@ -1,3 +1,4 @@
+// Dtype names, sizes and the scalar conversions between float formats (see dtype.h).
 #include "core/dtype.h"
 
 namespace tether {

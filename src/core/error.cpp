@@ -1,3 +1,4 @@
+// Error code names and the Error constructors (see error.h).
 #include "core/error.h"
 
 namespace tether {

@@ -1,3 +1,4 @@
+// JSON config reading with errors that name the file and field at fault (see json_util.h).
 #include "core/json_util.h"
 
 #include <fstream>

@@ -1,3 +1,4 @@
+// The safetensors reader (mmap, checked header, zero-copy views) and writer (see safetensors.h).
 #include "core/safetensors.h"
 
 #include <fcntl.h>

@@ -1,3 +1,4 @@
+// Tensor views: shapes, alignment and conversion of stored dtypes to float32 (see tensor.h).
 #include "core/tensor.h"
 
 #include <cstring>

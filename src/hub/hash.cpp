@@ -1,3 +1,4 @@
+// ETag checks of downloaded files (see hash.h).
 #include "hub/hash.h"
 
 namespace tether::hub {

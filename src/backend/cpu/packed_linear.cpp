@@ -1,3 +1,4 @@
+// Packing linear weights once and running them through oneDNN or the panel GEMM (see packed_linear.h).
 #include "backend/cpu/packed_linear.h"
 
 #include <algorithm>
