@@ -219,6 +219,7 @@ struct Server::Impl {
         };
       auto b = std::make_unique<runtime::Batcher>(std::move(predict), opts.batch);
       metrics.set_gemm(e->gemm);
+      metrics.declare_stages(e->spec.stages);
       register_wedge_metrics();
       engine = std::move(e);
       batcher = std::move(b);
@@ -693,15 +694,14 @@ struct Server::Impl {
     for (int64_t row = 0; row < rows; ++row)
       actions_json.push_back(std::vector<float>(actions->begin() + row * dim, actions->begin() + (row + 1) * dim));
     Json latency = Json::object();
-    std::vector<std::pair<const char*, double>> stages = {{"total", ms_since(received)}};
+    std::vector<std::pair<std::string, double>> stages = {{"total", ms_since(received)}};
     if (ran) {
-      const double preprocess_ms = parse_ms + ran->normalize_ms + ran->timings.preprocess_ms;
-      stages.insert(stages.end(), {{"queue", ran->queue_ms},
-                                   {"preprocess", preprocess_ms},
-                                   {"vision", ran->timings.vision_ms},
-                                   {"prefix", ran->timings.prefix_ms},
-                                   {"denoise", ran->timings.denoise_ms},
-                                   {"postprocess", ran->postprocess_ms}});
+      stages.emplace_back("queue", ran->queue_ms);
+      // The model's stages in its order (ModelSpec::stages); the first also carries parsing and normalisation.
+      for (std::size_t i = 0; i < spec.stages.size(); ++i)
+        stages.emplace_back(spec.stages[i],
+                            ran->timings.get(spec.stages[i]) + (i == 0 ? parse_ms + ran->normalize_ms : 0.0));
+      stages.emplace_back("postprocess", ran->postprocess_ms);
       if (ran->index_in_batch == 0) metrics.observe_batch_size(ran->batch_size);
     }
     for (const auto& [name, ms] : stages) {
