@@ -10,10 +10,11 @@
 #include <string>
 #include <vector>
 
+#include "backend/backend.h"
 #include "backend/cpu/packed_linear.h"
 #include "core/json_util.h"
 #include "core/tensor.h"
-#include "models/flow_matching.h"
+#include "models/blocks/sampler.h"
 #include "vision/image.h"
 
 namespace tether::models {
@@ -41,6 +42,7 @@ struct ModelOutput {
   std::vector<std::vector<std::string>> warnings;  // per item
   std::vector<int> steps_used;                      // per item: denoise steps run (num_steps unless it stopped early)
   StageTimings timings;
+  double flops = 0;  // matrix-product flops of this forward pass (2 per multiply-add), as the blocks count them
 };
 
 struct ModelSpec {
@@ -65,6 +67,8 @@ struct LoadOptions {
   // fp32 is the reference mode; bf16 runs the linear layers with bf16 weights and inputs (float32
   // accumulation, attention and norms in float32), measured against fp32, never assumed equal.
   cpu::Precision precision = cpu::Precision::fp32;
+  // Where the model runs; null: the CPU backend.
+  std::shared_ptr<backend::Backend> backend;
 };
 
 // Called with named intermediates ("mid.vision.<camera>", "mid.prefix_k.0", ...) when set: parity failures are

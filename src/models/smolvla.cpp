@@ -1,3 +1,5 @@
+// SmolVLA as wiring of the shared blocks: vision tower + pixel-shuffle connector, the truncated VLM decoder over the
+// prefix, the interleaved self/cross action expert, and the Euler sampler.
 #include "models/smolvla.h"
 
 #include <algorithm>
@@ -9,19 +11,21 @@
 #include <fstream>
 #include <optional>
 
-#include "backend/cpu/gemm.h"
-#include "backend/cpu/kernels.h"
+#include "backend/backend.h"
 #include "models/backbone.h"
-#include "models/flow_matching.h"
-#include "models/llama_decoder.h"
-#include "models/siglip.h"
+#include "models/blocks/action_expert.h"
+#include "models/blocks/attention_masks.h"
+#include "models/blocks/decoder.h"
+#include "models/blocks/linear.h"
+#include "models/blocks/sampler.h"
+#include "models/blocks/vision_tower.h"
 #include "text/tokenizer.h"
 #include "vision/preprocess.h"
 
 namespace tether::models {
 
 namespace fs = std::filesystem;
-using namespace tether::cpu;
+using backend::Ptr;
 
 namespace {
 
@@ -78,8 +82,12 @@ class SmolVLA final : public Model {
  private:
   void build_prefix(const std::vector<ModelInput>& batch, ModelOutput& out);
   void run_prefix();
-  void denoise_step(const float* x, float time, float* v);
+  void denoise_step(Ptr<const float> x, float time, Ptr<float> v);
   void ensure_buffers(int64_t batch, int64_t prefix_len);
+  double flops(int64_t images, int64_t steps_run) const;
+  // Named intermediate from backend memory, copied to the host for the debug hook.
+  template <typename T>
+  void dump_array(const std::string& name, DType dtype, Shape shape, Ptr<const T> at);
 
   ModelSpec spec_;
   TokenizerSettings tok_settings_;
@@ -88,32 +96,38 @@ class SmolVLA final : public Model {
   bool cross_mode_ = true;
   double min_period_ = 4e-3, max_period_ = 4.0;
 
+  std::shared_ptr<backend::Backend> be_;
   std::unique_ptr<Weights> weights_;
-  LlamaConfig text_cfg_;
+  DecoderConfig text_cfg_;
   VisionTower vision_;
   PixelShuffleConnector connector_;
-  Tensor embed_tokens_;  // stored dtype, rows converted on lookup (only the used rows are ever read)
-  std::vector<LlamaLayer> vlm_;
-  std::vector<LlamaLayer> expert_;
-  std::vector<int> expert_at_;  // VLM layer index -> expert layer index or -1
+  std::unique_ptr<backend::Table> embed_tokens_;  // stored dtype, rows converted on lookup (only used rows are read)
+  DecoderStack vlm_;
+  ActionExpert expert_;
   int64_t expert_hidden_ = 0;
-  const float *expert_norm_ = nullptr, *vlm_norm_ = nullptr;
-  cpu::PackedLinear state_proj_, action_in_, action_out_, time_in_, time_out_;
+  backend::Array<float> expert_norm_;
+  std::unique_ptr<backend::LinearWeights> state_proj_, action_in_, action_out_, time_in_, time_out_;
 
-  // Per-request state, sized once per (batch, prefix length) so the denoise loop never allocates.
+  // Per-request state, sized once per (batch, prefix length) so the denoise loop never allocates. Host vectors hold
+  // what is computed on the host (pixels, token ids, masks, positions) before it is uploaded to the backend arrays.
   int64_t B_ = 0, Lp_ = 0;
-  std::vector<float> pixels_, vision_out_, img_tokens_, prefix_x_, q_, qkv_, attn_, scratch_;
-  std::vector<uint8_t> prefix_pad_, prefix_mask_, self_mask_, cross_mask_, img_present_;
+  std::vector<float> host_pixels_, host_state_;
+  std::vector<uint8_t> prefix_pad_, img_present_, host_mask_, host_joint_mask_, host_cross_mask_;
   std::vector<int8_t> prefix_att_;
-  std::vector<int64_t> prefix_pos_, suffix_pos_, cross_pos_;
-  std::vector<std::vector<float>> k_cache_, v_cache_;        // per VLM layer [B, Lp + chunk, kv_dim]
-  std::vector<std::vector<float>> cross_k_, cross_v_;        // per VLM layer [B, Lp, kv_dim] (cross layers)
-  std::vector<float> x_t_, v_t_, suffix_x_, cat_, time_emb_, mlp_h_, normed_;
+  std::vector<int64_t> host_pos_, host_joint_pos_, host_cross_pos_;
+  backend::Array<float> pixels_, vision_out_, img_tokens_, prefix_x_, state_;
+  backend::Array<int64_t> token_ids_, prefix_pos_, suffix_pos_, cross_pos_;
+  backend::Array<uint8_t> prefix_mask_, self_mask_, cross_mask_;
+  KvCache cache_;
+  backend::Array<float> x_t_, v_t_, suffix_x_, cat_, time_emb_, mlp_h_, normed_;
+  int64_t images_run_ = 0;  // images through the vision tower in this request (for the flop count)
 };
 
 SmolVLA::SmolVLA(const fs::path& dir, const Json& config, TensorStore weights, const LoadOptions& options) {
   const cpu::Precision precision = options.precision;
   spec_.precision = precision;
+  be_ = options.backend ? options.backend : backend::make_backend("cpu");
+  backend::Backend& be = *be_;
   const std::string where = (dir / "config.json").string();
   const FamilyDescriptor& family = smolvla_family();
   spec_.family = family.name;
@@ -172,7 +186,8 @@ SmolVLA::SmolVLA(const fs::path& dir, const Json& config, TensorStore weights, c
   const std::string vlm_where = (vlm_dir / "config.json").string();
   const Json vlm_cfg = read_json_file(vlm_where);
   const VisionConfig vision_cfg = VisionConfig::from_json(vlm_cfg.value("vision_config", Json::object()), vlm_where);
-  text_cfg_ = LlamaConfig::from_json(json_get<Json>(vlm_cfg, "text_config", vlm_where), vlm_where);
+  text_cfg_ = DecoderConfig::from_llama_json(json_get<Json>(vlm_cfg, "text_config", vlm_where), vlm_where);
+  text_cfg_.rope_wavelength = kRopeWavelength;
   if (text_cfg_.rms_norm_eps == 1e-6f && !vlm_cfg["text_config"].contains("rms_norm_eps"))
     text_cfg_.rms_norm_eps = 1e-5f;  // SmolVLMConfig's default text config overrides Llama's eps
   const int64_t scale_factor = json_get_or<int64_t>(vlm_cfg, "scale_factor", 2, vlm_where);
@@ -201,39 +216,38 @@ SmolVLA::SmolVLA(const fs::path& dir, const Json& config, TensorStore weights, c
   const std::string vlm_prefix = "model.vlm_with_expert.vlm.model.";
   const std::string expert_prefix = "model.vlm_with_expert.lm_expert.";
   const int64_t D = text_cfg_.hidden, E = expert_hidden_, A = spec_.max_action_dim;
-  vision_.load(w, vlm_prefix + "vision_model.", vision_cfg, precision);
-  connector_.load(w, vlm_prefix + "connector.", vision_cfg.hidden, scale_factor, D, precision);
-  embed_tokens_ = w.raw(vlm_prefix + "text_model.embed_tokens.weight", {text_cfg_.vocab, D});
-  vlm_norm_ = w.f32(vlm_prefix + "text_model.norm.weight", {D});
-  vlm_.resize(std::size_t(vlm_layers));
-  for (int64_t i = 0; i < vlm_layers; ++i)
-    vlm_[i].load(w, vlm_prefix + "text_model.layers." + std::to_string(i) + ".", text_cfg_, D,
-                 text_cfg_.intermediate, D, /*cross=*/false, precision, /*kv_only=*/i + 1 == vlm_layers);
+  vision_.load(be, w, vlm_prefix + "vision_model.", vision_cfg, precision);
+  connector_.load(be, w, vlm_prefix + "connector.", vision_cfg.hidden, scale_factor, D, precision);
+  embed_tokens_ = be.table(w.raw(vlm_prefix + "text_model.embed_tokens.weight", {text_cfg_.vocab, D}));
+  // The prefix's last layer feeds nothing but its K/V (the VLM's final norm is never applied on this path).
+  vlm_.load(be, w, vlm_prefix + "text_model.layers.", text_cfg_, vlm_layers, precision, /*last_kv_only=*/true);
   const int64_t kv_dim = text_cfg_.kv_heads * text_cfg_.head_dim;
-  expert_.resize(std::size_t(expert_layers));
+  std::vector<DecoderLayer::Attention> kinds;
   for (int64_t e = 0; e < expert_layers; ++e) {
     // Upstream reshapes k/v to read the VLM's K/V by *expert* index; routing below is by VLM index.
     const bool cross_shaped = cross_mode_ && !(self_attn_every_ > 0 && e % self_attn_every_ == 0);
-    expert_[e].load(w, expert_prefix + "layers." + std::to_string(e) + ".", text_cfg_, E,
-                     expert_intermediate_size(E), cross_shaped ? kv_dim : E, cross_shaped, precision);
+    kinds.push_back(cross_shaped ? DecoderLayer::Attention::cross : DecoderLayer::Attention::self);
   }
-  expert_norm_ = w.f32(expert_prefix + "norm.weight", {E});
+  expert_.load(be, w, expert_prefix + "layers.", text_cfg_, E, expert_intermediate_size(E), kinds, kv_dim, precision);
+  expert_norm_ = be.constant(w.f32(expert_prefix + "norm.weight", {E}), E);
   const int64_t multiple = vlm_layers / expert_layers;
-  expert_at_.assign(std::size_t(vlm_layers), -1);
+  std::vector<ActionExpert::Route> routes;
   for (int64_t i = 0; i < vlm_layers; ++i) {
-    if (multiple > 1 && i % multiple != 0) continue;
-    expert_at_[i] = int(i / multiple);
+    if (multiple > 1 && i % multiple != 0) continue;  // no expert layer here: the action stream passes unchanged
+    const int64_t e = i / multiple;
     const bool self_route = !cross_mode_ || (self_attn_every_ > 0 && i % self_attn_every_ == 0);
-    if (self_route == expert_[expert_at_[i]].cross)
+    if (self_route == expert_.layer(e).cross())
       throw Error(ErrorCode::unsupported,
                   where + ": this num_expert_layers/self_attn_every_n_layers combination routes expert layer " +
-                      std::to_string(expert_at_[i]) + " through the wrong attention kind (upstream fails too)");
+                      std::to_string(e) + " through the wrong attention kind (upstream fails too)");
+    routes.push_back({e, i});
   }
-  pack_linear(w, state_proj_, "model.state_proj", D, spec_.max_state_dim, true, precision);
-  pack_linear(w, action_in_, "model.action_in_proj", E, A, true, precision);
-  pack_linear(w, action_out_, "model.action_out_proj", A, E, true, precision);
-  pack_linear(w, time_in_, "model.action_time_mlp_in", E, 2 * E, true, precision);
-  pack_linear(w, time_out_, "model.action_time_mlp_out", E, E, true, precision);
+  expert_.set_routes(std::move(routes));
+  state_proj_ = load_linear(be, w, "model.state_proj", D, spec_.max_state_dim, true, precision);
+  action_in_ = load_linear(be, w, "model.action_in_proj", E, A, true, precision);
+  action_out_ = load_linear(be, w, "model.action_out_proj", A, E, true, precision);
+  time_in_ = load_linear(be, w, "model.action_time_mlp_in", E, 2 * E, true, precision);
+  time_out_ = load_linear(be, w, "model.action_time_mlp_out", E, E, true, precision);
   spec_.weights_dtype = w.stored_dtype();
   w.finish_loading();
   if (spec_.image_height == 0) spec_.image_height = spec_.image_width = vision_cfg.image_size;
@@ -243,41 +257,36 @@ void SmolVLA::ensure_buffers(int64_t batch, int64_t prefix_len) {
   if (batch == B_ && prefix_len == Lp_) return;
   B_ = batch;
   Lp_ = prefix_len;
+  backend::Backend& be = *be_;
   const int64_t D = text_cfg_.hidden, E = expert_hidden_, C = spec_.chunk_size, A = spec_.max_action_dim;
-  const int64_t q_dim = text_cfg_.heads * text_cfg_.head_dim, kv_dim = text_cfg_.kv_heads * text_cfg_.head_dim;
-  const int64_t rows = std::max(B_ * Lp_, B_ * C);
-  prefix_x_.assign(std::size_t(B_ * Lp_ * D), 0.f);
-  q_.resize(std::size_t(rows * q_dim));
-  qkv_.resize(std::size_t(rows * (q_dim + 2 * kv_dim)));
-  attn_.resize(std::size_t(rows * q_dim));
-  normed_.resize(std::size_t(rows * std::max(D, E)));
-  k_cache_.assign(vlm_.size(), std::vector<float>(std::size_t(B_ * (Lp_ + C) * kv_dim)));
-  v_cache_.assign(vlm_.size(), std::vector<float>(std::size_t(B_ * (Lp_ + C) * kv_dim)));
-  cross_k_.assign(vlm_.size(), {});
-  cross_v_.assign(vlm_.size(), {});
-  for (std::size_t i = 0; i < vlm_.size(); ++i) {
-    if (expert_at_[i] >= 0 && expert_[expert_at_[i]].cross) {
-      cross_k_[i].resize(std::size_t(B_ * Lp_ * kv_dim));
-      cross_v_[i].resize(std::size_t(B_ * Lp_ * kv_dim));
-    }
-  }
-  prefix_pad_.assign(std::size_t(B_ * Lp_), 0);
-  prefix_att_.assign(std::size_t(B_ * Lp_), 0);
-  prefix_pos_.assign(std::size_t(B_ * Lp_), 0);
-  prefix_mask_.assign(std::size_t(B_ * Lp_ * Lp_), 0);
-  self_mask_.assign(std::size_t(B_ * C * (Lp_ + C)), 0);
-  cross_mask_.assign(std::size_t(B_ * C * Lp_), 0);
-  suffix_pos_.assign(std::size_t(B_ * C), 0);
-  cross_pos_.assign(std::size_t(B_ * C), 0);
-  x_t_.resize(std::size_t(B_ * C * A));
-  v_t_.resize(std::size_t(B_ * C * A));
-  suffix_x_.resize(std::size_t(B_ * C * E));
-  cat_.resize(std::size_t(B_ * C * 2 * E));
-  mlp_h_.resize(std::size_t(B_ * C * E));
-  time_emb_.resize(std::size_t(E));
+  const int64_t kv_dim = text_cfg_.kv_heads * text_cfg_.head_dim;
+  prefix_x_ = be.alloc<float>(B_ * Lp_ * D);
+  state_ = be.alloc<float>(B_ * spec_.max_state_dim);
+  cache_.resize(be, vlm_.layers(), B_, Lp_ + C, kv_dim);
+  prefix_pos_ = be.alloc<int64_t>(B_ * Lp_);
+  prefix_mask_ = be.alloc<uint8_t>(B_ * Lp_ * Lp_);
+  self_mask_ = be.alloc<uint8_t>(B_ * C * (Lp_ + C));
+  cross_mask_ = be.alloc<uint8_t>(B_ * C * Lp_);
+  suffix_pos_ = be.alloc<int64_t>(B_ * C);
+  cross_pos_ = be.alloc<int64_t>(B_ * C);
+  x_t_ = be.alloc<float>(B_ * C * A);
+  v_t_ = be.alloc<float>(B_ * C * A);
+  suffix_x_ = be.alloc<float>(B_ * C * E);
+  cat_ = be.alloc<float>(B_ * C * 2 * E);
+  mlp_h_ = be.alloc<float>(B_ * C * E);
+  normed_ = be.alloc<float>(B_ * C * E);
+  time_emb_ = be.alloc<float>(E);
+}
+
+template <typename T>
+void SmolVLA::dump_array(const std::string& name, DType dtype, Shape shape, Ptr<const T> at) {
+  std::vector<T> host(std::size_t(shape_numel(shape)));
+  be_->download(at, int64_t(host.size()), host.data());
+  dump(name, Tensor{dtype, std::move(shape), host.data(), nullptr});
 }
 
 void SmolVLA::build_prefix(const std::vector<ModelInput>& batch, ModelOutput& out) {
+  backend::Backend& be = *be_;
   const auto t0 = std::chrono::steady_clock::now();
   const int64_t B = int64_t(batch.size()), D = text_cfg_.hidden;
   const int64_t H = spec_.image_height, W = spec_.image_width, ncam = int64_t(spec_.cameras.size());
@@ -285,7 +294,7 @@ void SmolVLA::build_prefix(const std::vector<ModelInput>& batch, ModelOutput& ou
 
   // Cameras: present ones are preprocessed; absent ones follow upstream: up to `empty_cameras` slots are filled
   // with a -1 image and masked out, further absent cameras are dropped from the prefix.
-  pixels_.resize(std::size_t(ncam * B * img_elems));
+  host_pixels_.resize(std::size_t(ncam * B * img_elems));
   img_present_.assign(std::size_t(ncam * B), 0);
   std::vector<int64_t> slots(B, 0);  // image slots used per item
   std::vector<std::vector<int64_t>> slot_camera(B);
@@ -294,7 +303,7 @@ void SmolVLA::build_prefix(const std::vector<ModelInput>& batch, ModelOutput& ou
     for (int64_t c = 0; c < ncam; ++c) {
       auto it = batch[b].images.find(spec_.cameras[c]);
       if (it != batch[b].images.end()) {
-        vision::resize_with_pad_normalized(it->second, int(H), int(W), &pixels_[(c * B + b) * img_elems]);
+        vision::resize_with_pad_normalized(it->second, int(H), int(W), &host_pixels_[(c * B + b) * img_elems]);
         img_present_[c * B + b] = 1;
         slot_camera[b].push_back(c);
       }
@@ -311,7 +320,7 @@ void SmolVLA::build_prefix(const std::vector<ModelInput>& batch, ModelOutput& ou
         out.warnings[b].push_back("no image for camera '" + spec_.cameras[c] +
                                   "': camera dropped from the prefix, as upstream does");
       }
-      std::fill_n(&pixels_[(c * B + b) * img_elems], img_elems, -1.0f);
+      std::fill_n(&host_pixels_[(c * B + b) * img_elems], img_elems, -1.0f);
     }
     if (slot_camera[b].empty() || std::none_of(slot_camera[b].begin(), slot_camera[b].end(),
                                                [&](int64_t c) { return img_present_[c * B + b]; }))
@@ -319,6 +328,8 @@ void SmolVLA::build_prefix(const std::vector<ModelInput>& batch, ModelOutput& ou
                                                    " has no image for any camera the model knows");
     slots[b] = int64_t(slot_camera[b].size());
   }
+  if (pixels_.size() < int64_t(host_pixels_.size())) pixels_ = be.alloc<float>(int64_t(host_pixels_.size()));
+  be.upload(host_pixels_.data(), int64_t(host_pixels_.size()), pixels_.at());
 
   // Language tokens.
   std::vector<std::string> texts;
@@ -330,6 +341,11 @@ void SmolVLA::build_prefix(const std::vector<ModelInput>& batch, ModelOutput& ou
   opts.pad_right = tok_settings_.pad_right;
   const text::BatchEncoding enc = text::encode_batch(tokenizer_->tokenizer, texts, opts);
   const int64_t L = enc.length;
+  for (int64_t id : enc.ids)
+    if (id < 0 || id >= text_cfg_.vocab)
+      throw Error(ErrorCode::internal, "token id " + std::to_string(id) + " outside the embedding table");
+  token_ids_ = be.alloc<int64_t>(B * L);
+  be.upload(enc.ids.data(), B * L, token_ids_.at());
   out.timings.set("preprocess", ms_since(t0));
 
   // Vision tower + connector over runs of up to kVisionGroup present images (camera-major order), so the
@@ -338,8 +354,10 @@ void SmolVLA::build_prefix(const std::vector<ModelInput>& batch, ModelOutput& ou
   const auto t1 = std::chrono::steady_clock::now();
   const int64_t patches = vision_.num_patches(H, W), T = connector_.tokens(patches);
   constexpr int64_t kVisionGroup = 4;
-  vision_out_.resize(std::size_t(std::min(ncam * B, kVisionGroup) * patches * vision_.hidden()));
-  img_tokens_.resize(std::size_t(ncam * B * T * D));
+  const int64_t vision_rows = std::min(ncam * B, kVisionGroup) * patches * vision_.hidden();
+  if (vision_out_.size() < vision_rows) vision_out_ = be.alloc<float>(vision_rows);
+  if (img_tokens_.size() < ncam * B * T * D) img_tokens_ = be.alloc<float>(ncam * B * T * D);
+  images_run_ = 0;
   for (int64_t i = 0; i < ncam * B;) {
     if (!img_present_[i]) {
       ++i;
@@ -347,15 +365,16 @@ void SmolVLA::build_prefix(const std::vector<ModelInput>& batch, ModelOutput& ou
     }
     int64_t n = 1;
     while (n < kVisionGroup && i + n < ncam * B && img_present_[i + n]) ++n;
-    vision_.forward(&pixels_[i * img_elems], n, H, W, vision_out_.data());
-    connector_.forward(vision_out_.data(), n, patches, &img_tokens_[i * T * D]);
+    vision_.forward(be, pixels_.at(i * img_elems), n, H, W, vision_out_.at());
+    connector_.forward(be, vision_out_.at(), n, patches, img_tokens_.at(i * T * D));
+    images_run_ += n;
     i += n;
   }
   out.timings.set("vision", ms_since(t1));
   if (dumping()) {
     for (int64_t c = 0; c < ncam; ++c) {
-      dump("pre.pixels." + spec_.cameras[c], Tensor{DType::f32, {B, 3, H, W}, &pixels_[c * B * img_elems], nullptr});
-      dump("mid.vision." + spec_.cameras[c], Tensor{DType::f32, {B, T, D}, &img_tokens_[c * B * T * D], nullptr});
+      dump("pre.pixels." + spec_.cameras[c], Tensor{DType::f32, {B, 3, H, W}, &host_pixels_[c * B * img_elems], nullptr});
+      dump_array<float>("mid.vision." + spec_.cameras[c], DType::f32, {B, T, D}, img_tokens_.at(c * B * T * D));
     }
     dump("pre.lang_tokens", Tensor{DType::i64, {B, L}, enc.ids.data(), nullptr});
     dump("pre.lang_mask", Tensor{DType::u8, {B, L}, enc.mask.data(), nullptr});
@@ -367,197 +386,104 @@ void SmolVLA::build_prefix(const std::vector<ModelInput>& batch, ModelOutput& ou
   for (int64_t b = 0; b < B; ++b) Lp = std::max(Lp, slots[b] * T + L + 1);
   Lp = std::max(Lp, prefix_length_);
   ensure_buffers(B, Lp);
-  std::fill(prefix_x_.begin(), prefix_x_.end(), 0.f);
-  std::fill(prefix_pad_.begin(), prefix_pad_.end(), 0);
-  std::fill(prefix_att_.begin(), prefix_att_.end(), 0);
-  const float img_scale = float(std::sqrt(double(D)));
-  std::vector<float> state(std::size_t(spec_.max_state_dim));
+  prefix_pad_.assign(std::size_t(B * Lp), 0);
+  prefix_att_.assign(std::size_t(B * Lp), 0);
+  host_state_.assign(std::size_t(B * spec_.max_state_dim), 0.f);
+  for (int64_t b = 0; b < B; ++b) std::copy(batch[b].state.begin(), batch[b].state.end(), &host_state_[b * spec_.max_state_dim]);
+  be.upload(host_state_.data(), B * spec_.max_state_dim, state_.at());
+  // Padding rows stay zero: they are masked, but their values still pass through the layers.
+  std::vector<float> zeros(std::size_t(Lp * D), 0.f);
+  const float embed_scale = float(std::sqrt(double(D)));
   for (int64_t b = 0; b < B; ++b) {
-    float* x = &prefix_x_[b * Lp * D];
+    const Ptr<float> x = prefix_x_.at(b * Lp * D);
     uint8_t* pad = &prefix_pad_[b * Lp];
     int64_t t = 0;
     for (int64_t c : slot_camera[b]) {
-      const float* src = &img_tokens_[(c * B + b) * T * D];
-      for (int64_t i = 0; i < T * D; ++i) x[t * D + i] = src[i] * img_scale;
+      be.copy_rows(img_tokens_.at((c * B + b) * T * D), 0, x + t * D, 0, 1, T * D);
+      be.scale(x + t * D, T * D, embed_scale);
       std::fill_n(pad + t, T, img_present_[c * B + b]);
       t += T;
     }
-    for (int64_t j = 0; j < L; ++j, ++t) {
-      const int64_t id = enc.ids[b * L + j];
-      if (id < 0 || id >= text_cfg_.vocab)
-        throw Error(ErrorCode::internal, "token id " + std::to_string(id) + " outside the embedding table");
-      embed_tokens_.copy_f32(id * D, D, x + t * D);
-      for (int64_t i = 0; i < D; ++i) x[t * D + i] *= img_scale;
-      pad[t] = enc.mask[b * L + j];
-    }
-    std::fill(state.begin(), state.end(), 0.f);
-    const auto& s = batch[b].state;
-    std::copy(s.begin(), s.end(), state.begin());
-    state_proj_.forward(state.data(), 1, x + t * D);
+    be.gather_rows(*embed_tokens_, token_ids_.at(b * L), L, embed_scale, x + t * D);
+    for (int64_t j = 0; j < L; ++j) pad[t + j] = enc.mask[b * L + j];
+    t += L;
+    be.linear(*state_proj_, state_.at(b * spec_.max_state_dim), 1, x + t * D);
     pad[t] = 1;
     prefix_att_[b * Lp + t] = 1;  // image and language tokens do not attend to the state
+    ++t;
+    if (t < Lp) be.upload(zeros.data(), (Lp - t) * D, x + t * D);
   }
-  if (dumping()) {
-    std::vector<float> padded(std::size_t(B * spec_.max_state_dim), 0.f);
-    for (int64_t b = 0; b < B; ++b) std::copy(batch[b].state.begin(), batch[b].state.end(), &padded[b * spec_.max_state_dim]);
-    dump("pre.state", Tensor{DType::f32, {B, spec_.max_state_dim}, padded.data(), nullptr});
-  }
+  if (dumping()) dump("pre.state", Tensor{DType::f32, {B, spec_.max_state_dim}, host_state_.data(), nullptr});
 
-  // make_att_2d_masks: j visible from i when cumsum(att)[j] <= cumsum(att)[i] and both are real tokens.
-  for (int64_t b = 0; b < B; ++b) {
-    std::vector<int64_t> cum(static_cast<std::size_t>(Lp));
-    int64_t acc = 0, pos = 0;
-    for (int64_t t = 0; t < Lp; ++t) {
-      acc += prefix_att_[b * Lp + t];
-      cum[t] = acc;
-      pos += prefix_pad_[b * Lp + t];
-      prefix_pos_[b * Lp + t] = pos - 1;
-    }
-    for (int64_t i = 0; i < Lp; ++i)
-      for (int64_t j = 0; j < Lp; ++j)
-        prefix_mask_[(b * Lp + i) * Lp + j] = cum[j] <= cum[i] && prefix_pad_[b * Lp + i] && prefix_pad_[b * Lp + j];
-  }
+  prefix_masks(prefix_pad_, prefix_att_, B, Lp, host_mask_, host_pos_);
+  be.upload(host_mask_.data(), B * Lp * Lp, prefix_mask_.at());
+  be.upload(host_pos_.data(), B * Lp, prefix_pos_.at());
   if (dumping()) {
-    dump("mid.prefix_embs", Tensor{DType::f32, {B, Lp, D}, prefix_x_.data(), nullptr});
+    dump_array<float>("mid.prefix_embs", DType::f32, {B, Lp, D}, prefix_x_.at());
     dump("mid.prefix_pad_mask", Tensor{DType::u8, {B, Lp}, prefix_pad_.data(), nullptr});
   }
 }
 
-// Runs the VLM over the prefix once, leaving post-RoPE K/V of every layer in the cache.
+// Runs the VLM over the prefix once, leaving post-RoPE K/V of every layer in the cache, then what the expert needs.
 void SmolVLA::run_prefix() {
-  const int64_t B = B_, Lp = Lp_, C = spec_.chunk_size, D = text_cfg_.hidden;
-  const int64_t H = text_cfg_.heads, KvH = text_cfg_.kv_heads, hd = text_cfg_.head_dim;
-  const int64_t q_dim = H * hd, kv_dim = KvH * hd, qkv_dim = q_dim + 2 * kv_dim, rows = B * Lp;
-  const float scale_qk = 1.0f / std::sqrt(float(hd));
-  float* x = prefix_x_.data();
-  for (std::size_t li = 0; li < vlm_.size(); ++li) {
-    const LlamaLayer& L = vlm_[li];
-    const bool last = li + 1 == vlm_.size();
-    rms_norm(x, rows, D, L.input_norm, text_cfg_.rms_norm_eps, normed_.data());
-    // The last layer's output is never read: only its K/V are needed.
-    (last ? L.kv : L.qkv).forward(normed_.data(), rows, qkv_.data());
-    const int64_t stride = last ? 2 * kv_dim : qkv_dim, k_off = last ? 0 : q_dim;
-    for (int64_t b = 0; b < B; ++b) {
-      float* kc = &k_cache_[li][b * (Lp + C) * kv_dim];
-      float* vc = &v_cache_[li][b * (Lp + C) * kv_dim];
-      for (int64_t t = 0; t < Lp; ++t) {
-        const float* row = &qkv_[(b * Lp + t) * stride];
-        if (!last) std::memcpy(&q_[(b * Lp + t) * q_dim], row, std::size_t(q_dim) * sizeof(float));
-        std::memcpy(kc + t * kv_dim, row + k_off, std::size_t(kv_dim) * sizeof(float));
-        std::memcpy(vc + t * kv_dim, row + k_off + kv_dim, std::size_t(kv_dim) * sizeof(float));
-      }
-      rope(kc, 1, Lp, KvH, hd, &prefix_pos_[b * Lp], kRopeWavelength);
-      if (last) continue;
-      rope(&q_[b * Lp * q_dim], 1, Lp, H, hd, &prefix_pos_[b * Lp], kRopeWavelength);
-      attention(&q_[b * Lp * q_dim], q_dim, kc, vc, kv_dim, &prefix_mask_[b * Lp * Lp], 1, Lp, Lp, H, KvH, hd,
-                scale_qk, &attn_[b * Lp * q_dim]);
-    }
-    if (!last) L.finish(attn_.data(), rows, text_cfg_.rms_norm_eps, x, scratch_);
-  }
+  backend::Backend& be = *be_;
+  const int64_t B = B_, Lp = Lp_, C = spec_.chunk_size;
+  const int64_t KvH = text_cfg_.kv_heads, hd = text_cfg_.head_dim, kv_dim = KvH * hd;
+  vlm_.forward(be, prefix_x_.at(), B, Lp, prefix_pos_.at(), prefix_mask_.at(), cache_);
   if (dumping()) {
-    std::vector<float> compact(std::size_t(B * Lp * kv_dim));
-    for (std::size_t li : {std::size_t(0), vlm_.size() - 1}) {
-      for (const auto& [name, cache] : {std::pair{"k", &k_cache_[li]}, std::pair{"v", &v_cache_[li]}}) {
+    for (int64_t li : {int64_t(0), vlm_.layers() - 1}) {
+      for (const char* kv : {"k", "v"}) {
+        std::vector<float> compact(std::size_t(B * Lp * kv_dim));
         for (int64_t b = 0; b < B; ++b)
-          std::memcpy(&compact[b * Lp * kv_dim], &(*cache)[b * (Lp + C) * kv_dim], std::size_t(Lp * kv_dim) * 4);
-        dump(std::string("mid.prefix_") + name + "." + std::to_string(li),
+          be.download(Ptr<const float>(kv[0] == 'k' ? cache_.k_at(li, b, 0) : cache_.v_at(li, b, 0)), Lp * kv_dim,
+                      &compact[b * Lp * kv_dim]);
+        dump(std::string("mid.prefix_") + kv + "." + std::to_string(li),
              Tensor{DType::f32, {B, Lp, KvH, hd}, compact.data(), nullptr});
       }
     }
   }
-
-  // Cross-attention K/V: the expert's projections of the (fixed) prefix K/V do not change across denoise
-  // steps, so they are computed once per request instead of once per step.
-  for (std::size_t li = 0; li < vlm_.size(); ++li) {
-    if (cross_k_[li].empty()) continue;
-    const LlamaLayer& X = expert_[expert_at_[li]];
-    for (int64_t b = 0; b < B; ++b) {
-      const float* kc = &k_cache_[li][b * (Lp + C) * kv_dim];
-      const float* vc = &v_cache_[li][b * (Lp + C) * kv_dim];
-      X.k_in.forward(kc, Lp, &cross_k_[li][b * Lp * kv_dim]);
-      X.v_in.forward(vc, Lp, &cross_v_[li][b * Lp * kv_dim]);
-    }
-  }
-
-  // Masks and positions of the action tokens: they see every real prefix token and, among themselves,
-  // causally (each action token is its own attention block); positions continue after the real prefix.
-  for (int64_t b = 0; b < B; ++b) {
-    int64_t valid = 0;
-    for (int64_t t = 0; t < Lp; ++t) valid += prefix_pad_[b * Lp + t];
-    for (int64_t i = 0; i < C; ++i) {
-      suffix_pos_[b * C + i] = valid + i;
-      cross_pos_[b * C + i] = i;
-      uint8_t* srow = &self_mask_[(b * C + i) * (Lp + C)];
-      uint8_t* crow = &cross_mask_[(b * C + i) * Lp];
-      for (int64_t t = 0; t < Lp; ++t) srow[t] = crow[t] = prefix_pad_[b * Lp + t];
-      for (int64_t j = 0; j < C; ++j) srow[Lp + j] = j <= i;
-    }
-  }
+  expert_.prepare(be, cache_, Lp);
+  // Action tokens see every real prefix token and, among themselves, causally (each is its own attention block);
+  // positions continue after the real prefix.
+  causal_suffix_masks(prefix_pad_, B, Lp, C, host_joint_mask_, host_cross_mask_, host_joint_pos_, host_cross_pos_);
+  be.upload(host_joint_mask_.data(), B * C * (Lp + C), self_mask_.at());
+  be.upload(host_cross_mask_.data(), B * C * Lp, cross_mask_.at());
+  be.upload(host_joint_pos_.data(), B * C, suffix_pos_.at());
+  be.upload(host_cross_pos_.data(), B * C, cross_pos_.at());
 }
 
 // One Euler step's velocity: embeds x ([B, chunk, max_action_dim]) with the time, runs the expert against the cached
 // prefix, writes the velocity to v (same layout).
-void SmolVLA::denoise_step(const float* x_t, float time, float* v) {
-  const int64_t B = B_, Lp = Lp_, C = spec_.chunk_size, E = expert_hidden_;
-  const int64_t H = text_cfg_.heads, KvH = text_cfg_.kv_heads, hd = text_cfg_.head_dim;
-  const int64_t q_dim = H * hd, kv_dim = KvH * hd, qkv_dim = q_dim + 2 * kv_dim, rows = B * C;
-  const float scale_qk = 1.0f / std::sqrt(float(hd));
-
-  // Sinusoidal time embedding, computed in float64 as upstream does, then rounded to float32.
-  // The fractions follow torch.linspace, which fills the upper half counting back from the end.
-  const int64_t half = E / 2;
-  const double lin_step = half > 1 ? 1.0 / double(half - 1) : 0.0;
-  for (int64_t i = 0; i < half; ++i) {
-    const double fraction = i < half / 2 ? double(i) * lin_step : 1.0 - double(half - 1 - i) * lin_step;
-    const double period = min_period_ * std::pow(max_period_ / min_period_, fraction);
-    const double angle = (1.0 / period) * 2.0 * M_PI * double(time);
-    time_emb_[i] = float(std::sin(angle));
-    time_emb_[half + i] = float(std::cos(angle));
-  }
+void SmolVLA::denoise_step(Ptr<const float> x_t, float time, Ptr<float> v) {
+  backend::Backend& be = *be_;
+  const int64_t B = B_, C = spec_.chunk_size, E = expert_hidden_, rows = B * C;
   // [action_in(x_t), time] -> mlp_in -> silu -> mlp_out.
-  action_in_.forward(x_t, rows, cat_.data(), false, /*ldy=*/2 * E);
-  for (int64_t r = 0; r < rows; ++r) std::memcpy(&cat_[r * 2 * E + E], time_emb_.data(), std::size_t(E) * sizeof(float));
-  time_in_.forward(cat_.data(), rows, mlp_h_.data());
-  silu(mlp_h_.data(), rows * E);
-  time_out_.forward(mlp_h_.data(), rows, suffix_x_.data());
+  be.time_embedding(double(time), E, min_period_, max_period_, time_emb_.at());
+  be.linear(*action_in_, x_t, rows, cat_.at(), false, /*ldy=*/2 * E);
+  be.copy_rows(time_emb_.at(), 0, cat_.at(E), 2 * E, rows, E);
+  be.linear(*time_in_, cat_.at(), rows, mlp_h_.at());
+  be.activate(mlp_h_.at(), rows * E, backend::Activation::silu);
+  be.linear(*time_out_, mlp_h_.at(), rows, suffix_x_.at());
+  expert_.forward(be, suffix_x_.at(), B, C, cache_, Lp_, suffix_pos_.at(), self_mask_.at(), cross_pos_.at(),
+                  cross_mask_.at());
+  be.rms_norm(suffix_x_.at(), rows, E, expert_norm_.at(), text_cfg_.rms_norm_eps, normed_.at());
+  be.linear(*action_out_, normed_.at(), rows, v);
+}
 
-  float* x = suffix_x_.data();
-  for (std::size_t li = 0; li < vlm_.size(); ++li) {
-    if (expert_at_[li] < 0) continue;  // no expert layer here: the action stream passes through unchanged
-    const LlamaLayer& X = expert_[expert_at_[li]];
-    rms_norm(x, rows, E, X.input_norm, text_cfg_.rms_norm_eps, normed_.data());
-    if (!X.cross) {
-      X.qkv.forward(normed_.data(), rows, qkv_.data());
-      for (int64_t b = 0; b < B; ++b) {
-        float* kc = &k_cache_[li][b * (Lp + C) * kv_dim];
-        float* vc = &v_cache_[li][b * (Lp + C) * kv_dim];
-        for (int64_t i = 0; i < C; ++i) {
-          const float* row = &qkv_[(b * C + i) * qkv_dim];
-          std::memcpy(&q_[(b * C + i) * q_dim], row, std::size_t(q_dim) * sizeof(float));
-          std::memcpy(kc + (Lp + i) * kv_dim, row + q_dim, std::size_t(kv_dim) * sizeof(float));
-          std::memcpy(vc + (Lp + i) * kv_dim, row + q_dim + kv_dim, std::size_t(kv_dim) * sizeof(float));
-        }
-        rope(&q_[b * C * q_dim], 1, C, H, hd, &suffix_pos_[b * C], kRopeWavelength);
-        rope(kc + Lp * kv_dim, 1, C, KvH, hd, &suffix_pos_[b * C], kRopeWavelength);
-        attention(&q_[b * C * q_dim], q_dim, kc, vc, kv_dim, &self_mask_[b * C * (Lp + C)], 1, C, Lp + C, H, KvH, hd,
-                  scale_qk, &attn_[b * C * q_dim]);
-      }
-    } else {
-      X.qkv.forward(normed_.data(), rows, q_.data());
-      for (int64_t b = 0; b < B; ++b) {
-        rope(&q_[b * C * q_dim], 1, C, H, hd, &cross_pos_[b * C], kRopeWavelength);
-        attention(&q_[b * C * q_dim], q_dim, &cross_k_[li][b * Lp * kv_dim], &cross_v_[li][b * Lp * kv_dim], kv_dim,
-                  &cross_mask_[b * C * Lp], 1, C, Lp, H, KvH, hd, scale_qk, &attn_[b * C * q_dim]);
-      }
-    }
-    X.finish(attn_.data(), rows, text_cfg_.rms_norm_eps, x, scratch_);
-  }
-  rms_norm(x, rows, E, expert_norm_, text_cfg_.rms_norm_eps, normed_.data());
-  action_out_.forward(normed_.data(), rows, v);
+double SmolVLA::flops(int64_t images, int64_t steps_run) const {
+  const int64_t B = B_, C = spec_.chunk_size, Lp = Lp_, H = spec_.image_height, W = spec_.image_width;
+  const int64_t patches = vision_.num_patches(H, W);
+  double f = vision_.flops(images, H, W) + connector_.flops(images, patches);
+  f += linear_flops(*state_proj_, B) + vlm_.flops(B, Lp).total() + expert_.prepare_flops(B, Lp);
+  const double step = linear_flops(*action_in_, B * C) + linear_flops(*time_in_, B * C) +
+                      linear_flops(*time_out_, B * C) + expert_.forward_flops(B, C, Lp) +
+                      linear_flops(*action_out_, B * C);
+  return f + double(steps_run) * step;
 }
 
 ModelOutput SmolVLA::predict(const std::vector<ModelInput>& batch) {
   if (batch.empty()) throw Error(ErrorCode::invalid_argument, "predict: empty batch");
+  backend::Backend& be = *be_;
   const int64_t B = int64_t(batch.size()), C = spec_.chunk_size, A = spec_.max_action_dim;
   for (int64_t b = 0; b < B; ++b) {
     if (int64_t(batch[b].state.size()) != spec_.state_dim)
@@ -581,25 +507,31 @@ ModelOutput SmolVLA::predict(const std::vector<ModelInput>& batch) {
   out.timings.set("prefix", ms_since(t2));
 
   const auto t3 = std::chrono::steady_clock::now();
+  std::vector<float> noise(std::size_t(B * C * A));
   for (int64_t b = 0; b < B; ++b) {
-    float* dst = &x_t_[b * C * A];
+    float* dst = &noise[b * C * A];
     if (batch[b].noise.empty()) seeded_normal(batch[b].seed, dst, C * A);
     else std::copy(batch[b].noise.begin(), batch[b].noise.end(), dst);
   }
-  // Forward Euler from the noise (t=1) to the actions (t=0), per-item controls (flow_matching.h).
+  be.upload(noise.data(), B * C * A, x_t_.at());
+  // Euler from the noise (t=1) to the actions (t=0), per-item controls (blocks/sampler.h).
   std::vector<DenoiseControl> controls;
   controls.reserve(batch.size());
   for (const auto& item : batch) controls.push_back(item.denoise);
-  std::function<void(const float*)> on_step0;
-  if (dumping())
-    on_step0 = [&](const float* v) { dump("mid.velocity.step0", Tensor{DType::f32, {B, C, A}, v, nullptr}); };
-  out.steps_used = euler_sample(x_t_.data(), v_t_.data(), {B, C, A, spec_.action_dim}, spec_.num_steps, controls,
-                                [this](const float* x, float time, float* v) { denoise_step(x, time, v); }, on_step0);
+  std::function<void(Ptr<const float>)> on_step0;
+  if (dumping()) on_step0 = [&](Ptr<const float> v) { dump_array<float>("mid.velocity.step0", DType::f32, {B, C, A}, v); };
+  out.steps_used = euler_sample(be, x_t_.at(), v_t_.at(), {B, C, A, spec_.action_dim}, Schedule{1.0, 0.0, spec_.num_steps},
+                                controls, [this](Ptr<const float> x, float time, Ptr<float> v) { denoise_step(x, time, v); },
+                                on_step0);
   out.timings.set("denoise", ms_since(t3));
+  // Every item runs until the last one stops: the batch's steps are the most any item used.
+  out.flops = flops(images_run_, *std::max_element(out.steps_used.begin(), out.steps_used.end()));
 
+  std::vector<float> x(std::size_t(B * C * A));
+  be.download(Ptr<const float>(x_t_.at()), B * C * A, x.data());
   out.actions.resize(std::size_t(B * C * spec_.action_dim));
   for (int64_t r = 0; r < B * C; ++r)
-    std::memcpy(&out.actions[r * spec_.action_dim], &x_t_[r * A], std::size_t(spec_.action_dim) * sizeof(float));
+    std::memcpy(&out.actions[r * spec_.action_dim], &x[r * A], std::size_t(spec_.action_dim) * sizeof(float));
   return out;
 }
 

@@ -179,11 +179,4 @@ Tensor Weights::raw(const std::string& name, const Shape& shape) {
 
 void Weights::finish_loading() { store_.drop_resident_pages(); }
 
-void pack_linear(Weights& w, cpu::PackedLinear& out, const std::string& name, int64_t n, int64_t k, bool bias,
-                 cpu::Precision precision) {
-  const std::vector<float> weight = w.stacked({{name + ".weight", {n, k}}});
-  const std::vector<float> b = bias ? w.stacked({{name + ".bias", {n}}}) : std::vector<float>{};
-  out.pack(weight.data(), n, k, bias ? b.data() : nullptr, precision);
-}
-
 }  // namespace tether::models

@@ -103,8 +103,5 @@ class Weights {
   std::string stored_dtype_;
 };
 
-// Packs the nn.Linear `<name>.weight` [n, k] (and `<name>.bias` [n] when `bias`) into `out`.
-void pack_linear(Weights& w, cpu::PackedLinear& out, const std::string& name, int64_t n, int64_t k, bool bias,
-                 cpu::Precision precision);
 
 }  // namespace tether::models

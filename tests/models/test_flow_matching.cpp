@@ -3,15 +3,27 @@
 #include <gtest/gtest.h>
 
 #include <cmath>
+#include <functional>
 #include <vector>
 
 #include "core/error.h"
-#include "models/flow_matching.h"
+#include "models/blocks/sampler.h"
 
 using namespace tether;
 using namespace tether::models;
 
 namespace {
+
+using backend::Ptr;
+// Fields are written on host arrays; the CPU backend's addresses are host addresses.
+using HostField = std::function<void(const float* x, float t, float* v)>;
+VelocityFn as_velocity(HostField f) {
+  return [f](Ptr<const float> x, float t, Ptr<float> v) { f(x.address(), t, v.address()); };
+}
+backend::Backend& cpu_backend() {
+  static const auto be = backend::make_backend("cpu");
+  return *be;
+}
 
 constexpr int64_t kChunk = 4, kWidth = 3, kActionDim = 2, kSize = kChunk * kWidth;
 
@@ -22,7 +34,7 @@ std::vector<float> start_noise(int64_t batch) {
 }
 
 // A field that depends on x and time; `wobble` per item sets how much it still changes late in the trajectory.
-VelocityFn field(std::vector<float> wobble) {
+HostField field(std::vector<float> wobble) {
   return [wobble](const float* x, float t, float* v) {
     for (std::size_t b = 0; b < wobble.size(); ++b)
       for (int64_t i = 0; i < kSize; ++i) {
@@ -33,7 +45,7 @@ VelocityFn field(std::vector<float> wobble) {
 }
 
 // The loop euler_sample replaced, verbatim in arithmetic.
-std::vector<float> plain_euler(std::vector<float> x, int64_t steps, const VelocityFn& velocity) {
+std::vector<float> plain_euler(std::vector<float> x, int64_t steps, const HostField& velocity) {
   std::vector<float> v(x.size());
   const double dt = -1.0 / double(steps);
   const float dt32 = float(dt);
@@ -45,10 +57,11 @@ std::vector<float> plain_euler(std::vector<float> x, int64_t steps, const Veloci
 }
 
 std::vector<int> sample(std::vector<float>& x, int64_t steps, const std::vector<DenoiseControl>& controls,
-                        const VelocityFn& velocity) {
+                        const HostField& velocity) {
   const int64_t batch = int64_t(controls.size());
   std::vector<float> v(x.size());
-  return euler_sample(x.data(), v.data(), {batch, kChunk, kWidth, kActionDim}, steps, controls, velocity);
+  return euler_sample(cpu_backend(), Ptr<float>(x.data()), Ptr<float>(v.data()), {batch, kChunk, kWidth, kActionDim},
+                      Schedule{1.0, 0.0, steps}, controls, as_velocity(velocity));
 }
 
 void expect_weights(const std::vector<float>& got, const std::vector<float>& want) {
@@ -70,8 +83,9 @@ TEST(EulerSample, DefaultControlsAreThePlainLoopBitForBit) {
 TEST(EulerSample, StepZeroHookSeesTheFirstVelocity) {
   std::vector<float> x = start_noise(1), v(x.size()), seen;
   const std::vector<float> x0 = x;
-  euler_sample(x.data(), v.data(), {1, kChunk, kWidth, kActionDim}, 3, {DenoiseControl{}}, field({1.0f}),
-               [&](const float* vel) { seen.assign(vel, vel + kSize); });
+  euler_sample(cpu_backend(), Ptr<float>(x.data()), Ptr<float>(v.data()), {1, kChunk, kWidth, kActionDim}, Schedule{1.0, 0.0, 3},
+               {DenoiseControl{}}, as_velocity(field({1.0f})),
+               [&](Ptr<const float> vel) { seen.assign(vel.address(), vel.address() + kSize); });
   std::vector<float> want(x0.size());
   field({1.0f})(x0.data(), 1.0f, want.data());
   EXPECT_EQ(seen, want);
@@ -173,8 +187,8 @@ TEST(EulerSample, RtcGuidanceFollowsLerobotsFormula) {
 
 TEST(EulerSample, RejectsMismatchedControls) {
   std::vector<float> x = start_noise(2), v(x.size());
-  EXPECT_THROW(euler_sample(x.data(), v.data(), {2, kChunk, kWidth, kActionDim}, 4, {DenoiseControl{}},
-                            field({1.0f, 1.0f})),
+  EXPECT_THROW(euler_sample(cpu_backend(), Ptr<float>(x.data()), Ptr<float>(v.data()), {2, kChunk, kWidth, kActionDim},
+                            Schedule{1.0, 0.0, 4}, {DenoiseControl{}}, as_velocity(field({1.0f, 1.0f}))),
                Error);  // one control for two items
   DenoiseControl c;
   c.rtc_target.assign(kSize - 1, 0.0f);
@@ -234,4 +248,25 @@ TEST(RtcPrefixWeights, ScheduleNamesRoundTrip) {
   EXPECT_EQ(parse_rtc_schedule("LINEAR"), RtcSchedule::linear);
   EXPECT_THROW(parse_rtc_schedule("cosine"), Error);
   EXPECT_THROW(rtc_prefix_weights(-1, 4, 10, RtcSchedule::linear), Error);
+}
+
+TEST(EulerSample, RunsFromZeroToOneAsGr00tDoes) {
+  // GR00T's schedule: noise at t=0, dt = +1/steps, times 0, 1/4, 2/4, 3/4.
+  const auto velocity = field({0.7f});
+  std::vector<float> x = start_noise(1), want = x, v(x.size());
+  for (int64_t step = 0; step < 4; ++step) {
+    velocity(want.data(), float(0.0 + double(step) * 0.25), v.data());
+    for (int64_t i = 0; i < kSize; ++i) want[i] += float(0.25) * v[i];
+  }
+  std::vector<float> vb(x.size());
+  euler_sample(cpu_backend(), Ptr<float>(x.data()), Ptr<float>(vb.data()), {1, kChunk, kWidth, kActionDim},
+               Schedule{0.0, 1.0, 4}, {DenoiseControl{}}, as_velocity(velocity));
+  EXPECT_EQ(x, want);
+  // RTC's guidance weight is defined on the noise-at-1 direction only.
+  DenoiseControl c;
+  c.rtc_target.assign(kSize, 0.0f);
+  c.rtc_weights.assign(kChunk, 1.0f);
+  EXPECT_THROW(euler_sample(cpu_backend(), Ptr<float>(x.data()), Ptr<float>(vb.data()), {1, kChunk, kWidth, kActionDim},
+                            Schedule{0.0, 1.0, 4}, {c}, as_velocity(velocity)),
+               Error);
 }

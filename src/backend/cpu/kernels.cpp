@@ -86,7 +86,7 @@ void layer_norm(const float* x, int64_t rows, int64_t n, const float* gamma, con
   }
 }
 
-void rms_norm(const float* x, int64_t rows, int64_t n, const float* weight, float eps, float* y) {
+void rms_norm(const float* x, int64_t rows, int64_t n, const float* weight, float eps, float* y, bool one_plus) {
   require(n > 0, "rms_norm", "row length must be positive");
 #pragma omp parallel for schedule(static) if (rows * n >= kParallelMin)
   for (int64_t r = 0; r < rows; ++r) {
@@ -98,7 +98,10 @@ void rms_norm(const float* x, int64_t rows, int64_t n, const float* weight, floa
     // The variance is a float32 tensor upstream; rsqrt is 1 / sqrt, each rounded.
     const float var = float(sq / double(n));
     const float inv = 1.0f / std::sqrt(var + eps);
-    if (weight) {
+    if (weight && one_plus) {
+#pragma omp simd
+      for (int64_t i = 0; i < n; ++i) yr[i] = (xr[i] * inv) * (1.0f + weight[i]);
+    } else if (weight) {
 #pragma omp simd
       for (int64_t i = 0; i < n; ++i) yr[i] = weight[i] * (xr[i] * inv);
     } else {

@@ -8,8 +8,9 @@ namespace tether::cpu {
 // LayerNorm over the last dimension (rows x n): (x - mean) / sqrt(var + eps) * gamma + beta.
 void layer_norm(const float* x, int64_t rows, int64_t n, const float* gamma, const float* beta, float eps, float* y);
 
-// Llama RMSNorm: x * rsqrt(mean(x^2) + eps) * weight, computed in float32.
-void rms_norm(const float* x, int64_t rows, int64_t n, const float* weight, float eps, float* y);
+// Llama RMSNorm: x * rsqrt(mean(x^2) + eps) * weight, computed in float32; one_plus: Gemma's (x * rsqrt) * (1 + weight).
+// A null weight normalises alone.
+void rms_norm(const float* x, int64_t rows, int64_t n, const float* weight, float eps, float* y, bool one_plus = false);
 
 // Rotary embedding in place on x[B, L, H, D] (contiguous), "split halves" layout as in lerobot's apply_rope:
 // first half i pairs with second half i, frequency max_wavelength^(-2i/D), angle = position / timescale.

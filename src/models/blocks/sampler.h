@@ -1,11 +1,15 @@
-// The flow-matching sampler shared by the flow-matching families: forward Euler from noise (t=1) to actions (t=0),
-// with per-item adaptive step counts and real-time-chunking (RTC) guidance towards a previous chunk's leftover.
+// The flow-matching sampler as a block shared by the families: Euler over a time schedule in either direction (noise
+// at t=1 to actions at t=0 as lerobot's SmolVLA and pi0 do, or 0 to 1 as GR00T does), with per-item adaptive step
+// counts and real-time-chunking (RTC) guidance towards a previous chunk's leftover. Its arithmetic runs on the backend;
+// the serving wedges only set its options.
 #pragma once
 
 #include <cstdint>
 #include <functional>
 #include <string>
 #include <vector>
+
+#include "backend/backend.h"
 
 namespace tether::models {
 
@@ -40,16 +44,23 @@ struct SampleShape {
   int64_t action_dim = 0;  // the first action_dim of each width values are real actions; the rest is padding
 };
 
-// velocity(x, time, v): the model's velocity for the whole batch at `time`, written to v (same layout as x).
-using VelocityFn = std::function<void(const float* x, float time, float* v)>;
+// Euler from `start` (where x is noise) to `end` in `steps` equal steps of dt = (end - start) / steps.
+struct Schedule {
+  double start = 1.0, end = 0.0;
+  int64_t steps = 10;
+};
 
-// Forward Euler from x (noise at t=1) to t=0 in `num_steps` steps of dt = -1/num_steps, in place: x += dt * v, with
-// the times and dt rounded from float64 as lerobot does. `v` is the caller's [batch, chunk, width] buffer the velocity
-// is written to. With default controls the arithmetic is exactly that loop and nothing is allocated per step.
+// velocity(x, time, v): the model's velocity for the whole batch at `time`, written to v (same layout as x).
+using VelocityFn = std::function<void(backend::Ptr<const float> x, float time, backend::Ptr<float> v)>;
+
+// Euler in place on the backend's x: x += dt * v at times start + k * dt, times and dt rounded from float64 as
+// lerobot does. `v` is the caller's [batch, chunk, width] buffer the velocity is written to. With default controls the
+// arithmetic is exactly that loop and nothing is allocated per step. RTC guidance needs the noise-at-1 direction.
 // `on_step0_velocity`, when set, sees the model's first velocity (before any guidance).
-// Returns the velocity evaluations each item used (num_steps unless it stopped early).
-std::vector<int> euler_sample(float* x, float* v, const SampleShape& shape, int64_t num_steps,
+// Returns the velocity evaluations each item used (schedule.steps unless it stopped early).
+std::vector<int> euler_sample(backend::Backend& be, backend::Ptr<float> x, backend::Ptr<float> v,
+                              const SampleShape& shape, const Schedule& schedule,
                               const std::vector<DenoiseControl>& controls, const VelocityFn& velocity,
-                              const std::function<void(const float* v)>& on_step0_velocity = {});
+                              const std::function<void(backend::Ptr<const float> v)>& on_step0_velocity = {});
 
 }  // namespace tether::models

@@ -1,5 +1,5 @@
-// Forward-Euler flow-matching sampler with adaptive step counts and RTC guidance (see flow_matching.h).
-#include "models/flow_matching.h"
+// The Euler flow-matching sampler with adaptive step counts and RTC guidance (see sampler.h).
+#include "models/blocks/sampler.h"
 
 #include <algorithm>
 #include <cctype>
@@ -49,38 +49,10 @@ void check_control(const DenoiseControl& c, int64_t item, const SampleShape& s) 
     throw Error(ErrorCode::invalid_argument, where + "rtc_max_guidance_weight must be finite and > 0");
 }
 
-// RTC guidance on one item's velocity, in place, with lerobot's float32 arithmetic. The paper's correction is the
-// vector-Jacobian product err^T d(x1)/d(x_t) with x1 = x_t - time * v, i.e. err - time * err^T dv/dx_t. There is no
-// backward pass here, so the Jacobian is taken as the identity (correction = err, the time * dv/dx_t term is
-// dropped). lerobot 0.6.1's RTCProcessor evaluates v before it enables gradients on x_t, so its autograd product
-// reduces to the same identity.
-void apply_rtc(const float* x, float* v, const DenoiseControl& c, double time, const SampleShape& s) {
-  const float t = float(time);
-  const float weight = rtc_guidance_weight(float(1.0 - time), c.rtc_max_guidance_weight);
-  for (int64_t r = 0; r < s.chunk; ++r) {
-    const float w = c.rtc_weights[std::size_t(r)];
-    for (int64_t a = 0; a < s.width; ++a) {
-      const int64_t i = r * s.width + a;
-      const float x1 = x[i] - t * v[i];
-      const float err = (c.rtc_target[std::size_t(i)] - x1) * w;
-      v[i] = v[i] - weight * err;
-    }
-  }
-}
-
-// ||v - prev|| < threshold * ||prev|| over the real action dims (padding dims never reach the output).
-bool converged(const float* v, const float* prev, float threshold, const SampleShape& s) {
-  double diff = 0, norm = 0;
-  for (int64_t r = 0; r < s.chunk; ++r) {
-    for (int64_t a = 0; a < s.action_dim; ++a) {
-      const int64_t i = r * s.width + a;
-      const double d = double(v[i]) - double(prev[i]);
-      diff += d * d;
-      norm += double(prev[i]) * double(prev[i]);
-    }
-  }
-  return std::sqrt(diff) < double(threshold) * std::sqrt(norm);
-}
+// RTC guidance corrects the velocity by err^T d(x1)/d(x_t) with x1 = x_t - time * v, i.e. err - time * err^T dv/dx_t.
+// There is no backward pass here, so the Jacobian is taken as the identity (correction = err, the time * dv/dx_t term
+// is dropped). lerobot 0.6.1's RTCProcessor evaluates v before it enables gradients on x_t, so its autograd product
+// reduces to the same identity. The backend's rtc_guide applies it with lerobot's float32 arithmetic.
 
 }  // namespace
 
@@ -140,52 +112,68 @@ float rtc_guidance_weight(float tau, float max_guidance_weight) {
   return std::min(nan_to_num(c * inv_r2, max_guidance_weight), max_guidance_weight);
 }
 
-std::vector<int> euler_sample(float* x, float* v, const SampleShape& s, int64_t num_steps,
+std::vector<int> euler_sample(backend::Backend& be, backend::Ptr<float> x, backend::Ptr<float> v,
+                              const SampleShape& s, const Schedule& schedule,
                               const std::vector<DenoiseControl>& controls, const VelocityFn& velocity,
-                              const std::function<void(const float* v)>& on_step0_velocity) {
-  const int64_t B = s.batch, n = s.chunk * s.width;
+                              const std::function<void(backend::Ptr<const float> v)>& on_step0_velocity) {
+  const int64_t B = s.batch, n = s.chunk * s.width, num_steps = schedule.steps;
   if (num_steps < 1) throw Error(ErrorCode::invalid_argument, "euler_sample: num_steps must be >= 1");
+  if (!std::isfinite(schedule.start) || !std::isfinite(schedule.end) || schedule.start == schedule.end)
+    throw Error(ErrorCode::invalid_argument, "euler_sample: the schedule needs two different finite end points");
   if (int64_t(controls.size()) != B)
     throw Error(ErrorCode::invalid_argument, "euler_sample: " + std::to_string(controls.size()) +
                                                  " denoise controls for a batch of " + std::to_string(B));
-  bool adaptive = false;
+  bool adaptive = false, rtc = false;
   for (int64_t b = 0; b < B; ++b) {
     check_control(controls[b], b, s);
     adaptive = adaptive || controls[b].adaptive_threshold > 0;
+    rtc = rtc || !controls[b].rtc_target.empty();
   }
-  // Everything the loop needs is sized here: the steps themselves never allocate.
-  std::vector<float> prev_v(adaptive ? std::size_t(B * n) : 0);
+  if (rtc && !(schedule.start == 1.0 && schedule.end == 0.0))
+    throw Error(ErrorCode::unsupported, "euler_sample: RTC guidance is defined for schedules from noise at 1 to 0");
+  // Everything the loop needs is sized and uploaded here: the steps themselves never allocate.
+  backend::Array<float> prev_v = adaptive ? be.alloc<float>(B * n) : backend::Array<float>();
+  backend::Array<float> targets = rtc ? be.alloc<float>(B * n) : backend::Array<float>();
+  backend::Array<float> weights = rtc ? be.alloc<float>(B * s.chunk) : backend::Array<float>();
+  for (int64_t b = 0; b < B && rtc; ++b) {
+    if (controls[b].rtc_target.empty()) continue;
+    be.upload(controls[b].rtc_target.data(), n, targets.at(b * n));
+    be.upload(controls[b].rtc_weights.data(), s.chunk, weights.at(b * s.chunk));
+  }
   std::vector<int> steps(std::size_t(B), 0);
   std::vector<uint8_t> done(std::size_t(B), 0);
   int64_t active = B;
-
-  const double dt = -1.0 / double(num_steps);
+  const double dt = (schedule.end - schedule.start) / double(num_steps);
   const float dt32 = float(dt);
   for (int64_t step = 0; step < num_steps && active > 0; ++step) {
-    const double time = 1.0 + double(step) * dt;
+    const double time = schedule.start + double(step) * dt;
     velocity(x, float(time), v);
     if (step == 0 && on_step0_velocity) on_step0_velocity(v);
     for (int64_t b = 0; b < B; ++b) {
       if (done[b]) continue;  // frozen: its velocity is computed with the batch but never used
       const DenoiseControl& c = controls[b];
-      float* xb = x + b * n;
-      float* vb = v + b * n;
+      const backend::Ptr<float> xb = x + b * n, vb = v + b * n;
       ++steps[b];
-      if (!c.rtc_target.empty()) apply_rtc(xb, vb, c, time, s);
+      if (!c.rtc_target.empty())
+        be.rtc_guide(xb, vb, targets.at(b * n), weights.at(b * s.chunk), s.chunk, s.width, float(time),
+                     rtc_guidance_weight(float(1.0 - time), c.rtc_max_guidance_weight));
       if (c.adaptive_threshold > 0) {
-        float* pb = &prev_v[std::size_t(b * n)];
+        const backend::Ptr<float> pb = prev_v.at(b * n);
         // On the last step a jump is the ordinary step, so the check starts at the second and ends before the last.
-        if (step > 0 && step + 1 < num_steps && converged(vb, pb, c.adaptive_threshold, s)) {
-          // The velocity stopped changing: integrate it as a constant over the remaining time, straight to t=0.
-          const float rest = float(0.0 - time);
-          for (int64_t i = 0; i < n; ++i) xb[i] += rest * vb[i];
-          done[b] = 1;
-          --active;
-          continue;
+        if (step > 0 && step + 1 < num_steps) {
+          // ||v - prev|| < threshold * ||prev|| over the real action dims (padding dims never reach the output).
+          const auto [diff, norm] = be.change_norms(vb, pb, s.chunk, s.width, s.action_dim);
+          if (std::sqrt(diff) < double(c.adaptive_threshold) * std::sqrt(norm)) {
+            // The velocity stopped changing: integrate it as a constant over the remaining time, straight to the end.
+            be.axpy(xb, vb, n, float(schedule.end - time));
+            done[b] = 1;
+            --active;
+            continue;
+          }
         }
-        std::copy(vb, vb + n, pb);
+        be.copy_rows(vb, 0, pb, 0, 1, n);
       }
-      for (int64_t i = 0; i < n; ++i) xb[i] += dt32 * vb[i];
+      be.axpy(xb, vb, n, dt32);
     }
   }
   return steps;
