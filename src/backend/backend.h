@@ -116,10 +116,12 @@ class Backend {
                           float eps, Ptr<float> y) = 0;
   virtual void rms_norm(Ptr<const float> x, int64_t rows, int64_t n, Ptr<const float> weight, float eps, Ptr<float> y,
                         RmsScale kind = RmsScale::weight) = 0;
-  // Adaptive RMSNorm: y = rms_norm(x) * (1 + scale) + shift, without a weight; scale and shift are [groups, n] and row r
-  // uses group r / rows_per_group (one conditioning vector per batch item).
+  // Adaptive RMSNorm: y = rms_norm(x) * (1 + scale) + shift, without a weight; scale and shift are rows of n with row
+  // stride mod_stride (a [scale | shift | gate] modulation), and row r of x uses group r / rows_per_group (one
+  // conditioning vector per batch item).
   virtual void rms_norm_modulated(Ptr<const float> x, int64_t rows, int64_t n, Ptr<const float> scale,
-                                  Ptr<const float> shift, int64_t rows_per_group, float eps, Ptr<float> y) = 0;
+                                  Ptr<const float> shift, int64_t mod_stride, int64_t rows_per_group, float eps,
+                                  Ptr<float> y) = 0;
   // Masked grouped-query attention (see cpu/kernels.h `attention` for the layout and the masking rule).
   virtual void attention(Ptr<const float> q, int64_t q_stride, Ptr<const float> k, Ptr<const float> v,
                          int64_t kv_stride, Ptr<const uint8_t> mask, int64_t batch, int64_t len_q, int64_t len_k,
@@ -132,9 +134,10 @@ class Backend {
   virtual void gated(Ptr<const float> gate_up, int64_t rows, int64_t n, Activation act, Ptr<float> out) = 0;
   virtual void add(Ptr<const float> a, Ptr<const float> b, int64_t n, Ptr<float> out) = 0;  // out may alias
   virtual void scale(Ptr<float> x, int64_t n, float s) = 0;
-  // x[r] += gate[r / rows_per_group] * y[r], elementwise over rows of n (adaptive norms' gated residual).
-  virtual void gated_add(Ptr<float> x, Ptr<const float> y, Ptr<const float> gate, int64_t rows, int64_t n,
-                         int64_t rows_per_group) = 0;
+  // x[r] += y[r] * gate[r / rows_per_group] elementwise over rows of n, gate rows with stride gate_stride (adaptive
+  // norms' gated residual).
+  virtual void gated_add(Ptr<float> x, Ptr<const float> y, Ptr<const float> gate, int64_t gate_stride, int64_t rows,
+                         int64_t n, int64_t rows_per_group) = 0;
   // dst row r = src row r (row strides in elements; src_stride 0 broadcasts one row).
   virtual void copy_rows(Ptr<const float> src, int64_t src_stride, Ptr<float> dst, int64_t dst_stride, int64_t rows,
                          int64_t width) = 0;

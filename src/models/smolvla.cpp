@@ -188,6 +188,7 @@ SmolVLA::SmolVLA(const fs::path& dir, const Json& config, TensorStore weights, c
   const VisionConfig vision_cfg = VisionConfig::from_json(vlm_cfg.value("vision_config", Json::object()), vlm_where);
   text_cfg_ = DecoderConfig::from_llama_json(json_get<Json>(vlm_cfg, "text_config", vlm_where), vlm_where);
   text_cfg_.rope_wavelength = kRopeWavelength;
+  text_cfg_.embedding_scale = float(std::sqrt(double(text_cfg_.hidden)));  // images and text tokens alike
   if (text_cfg_.rms_norm_eps == 1e-6f && !vlm_cfg["text_config"].contains("rms_norm_eps"))
     text_cfg_.rms_norm_eps = 1e-5f;  // SmolVLMConfig's default text config overrides Llama's eps
   const int64_t scale_factor = json_get_or<int64_t>(vlm_cfg, "scale_factor", 2, vlm_where);
@@ -393,7 +394,7 @@ void SmolVLA::build_prefix(const std::vector<ModelInput>& batch, ModelOutput& ou
   be.upload(host_state_.data(), B * spec_.max_state_dim, state_.at());
   // Padding rows stay zero: they are masked, but their values still pass through the layers.
   std::vector<float> zeros(std::size_t(Lp * D), 0.f);
-  const float embed_scale = float(std::sqrt(double(D)));
+  const float embed_scale = text_cfg_.embedding_scale;
   for (int64_t b = 0; b < B; ++b) {
     const Ptr<float> x = prefix_x_.at(b * Lp * D);
     uint8_t* pad = &prefix_pad_[b * Lp];

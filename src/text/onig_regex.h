@@ -1,6 +1,6 @@
-// Regexes written for Oniguruma (what the Rust `tokenizers` crate compiles tokenizer.json patterns
-// with) run on PCRE2: the pattern is translated where the two dialects differ, and iteration
-// reproduces the onig crate's handling of empty matches.
+// Tokenizer patterns (tokenizer.json's Split / Replace regexes and the GPT-2 pattern) on
+// Oniguruma, the engine the Rust `tokenizers` crate compiles them with, iterated the way the onig
+// crate's find_iter does.
 #pragma once
 
 #include <cstddef>
@@ -30,7 +30,9 @@ class OnigRegex {
   std::unique_ptr<Compiled> compiled_;
 };
 
-// Exposed for tests: the PCRE2 pattern a given Oniguruma pattern becomes.
-std::string translate_onig_pattern(std::string_view pattern, const std::string& where);
+// The linked Oniguruma's version ("6.9.8") and the Unicode version of its property tables
+// ("14.0"), which decide how characters of later Unicode versions are classified.
+std::string oniguruma_version();
+std::string oniguruma_unicode_version();
 
 }  // namespace tether::text

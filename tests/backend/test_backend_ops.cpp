@@ -150,12 +150,13 @@ TEST_P(BackendOps, Norms) {
     EXPECT_LT(rel_diff(label("layer_norm") + size, get(ya), want), 1e-6);
 
     // Adaptive: two conditioning groups over the rows (rows 0..3 and 4..6 with rows_per_group 4).
-    const auto scale = random_vec(2 * n, 13), shift = random_vec(2 * n, 14);
-    const Array<float> sa = put(scale), sha = put(shift);
-    be->rms_norm_modulated(xa.at(), rows, n, sa.at(), sha.at(), 4, eps, ya.at());
+    // The modulation rows are [scale | shift | gate], as an adaptive norm's dense layer writes them.
+    const auto mod = random_vec(2 * 3 * n, 13);
+    const Array<float> ma = put(mod);
+    be->rms_norm_modulated(xa.at(), rows, n, ma.at(), ma.at(n), 3 * n, 4, eps, ya.at());
     for (int64_t r = 0; r < rows; ++r)
       for (int64_t i = 0; i < n; ++i)
-        want[r * n + i] = x[r * n + i] * rms[r] * (1.0 + scale[(r / 4) * n + i]) + shift[(r / 4) * n + i];
+        want[r * n + i] = x[r * n + i] * rms[r] * (1.0 + mod[(r / 4) * 3 * n + i]) + mod[(r / 4) * 3 * n + n + i];
     EXPECT_LT(rel_diff(label("rms_norm_modulated") + size, get(ya), want), 1e-6);
   }
 }
@@ -282,10 +283,10 @@ TEST_P(BackendOps, ElementwiseAndCopiesAreExact) {
   const auto after = get(out);
   for (int64_t i = 0; i < rows * n; ++i) ASSERT_EQ(after[i], got[i] + -0.1f * a[i]);
   const Array<float> x = put(a);
-  be->gated_add(x.at(), ba.at(), ga.at(), rows, n, 3);
+  be->gated_add(x.at(), ba.at(), ga.at(), n, rows, n, 3);
   got = get(x);
   for (int64_t r = 0; r < rows; ++r)
-    for (int64_t i = 0; i < n; ++i) ASSERT_EQ(got[r * n + i], a[r * n + i] + g[(r / 3) * n + i] * b[r * n + i]);
+    for (int64_t i = 0; i < n; ++i) ASSERT_EQ(got[r * n + i], a[r * n + i] + b[r * n + i] * g[(r / 3) * n + i]);
   // Strided copy, and a broadcast row (src stride 0).
   const Array<float> dst = put(std::vector<float>(std::size_t(rows * 130), 7.0f));
   be->copy_rows(aa.at(5), n, dst.at(2), 130, rows, 40);

@@ -79,14 +79,14 @@ class CpuBackend final : public Backend {
     cpu::rms_norm(x.address(), rows, n, weight.address(), eps, y.address(), kind == RmsScale::one_plus_weight);
   }
   void rms_norm_modulated(Ptr<const float> x, int64_t rows, int64_t n, Ptr<const float> scale, Ptr<const float> shift,
-                          int64_t rows_per_group, float eps, Ptr<float> y) override {
+                          int64_t mod_stride, int64_t rows_per_group, float eps, Ptr<float> y) override {
     if (rows_per_group < 1) throw Error(ErrorCode::invalid_argument, "rms_norm_modulated: rows_per_group must be >= 1");
     cpu::rms_norm(x.address(), rows, n, nullptr, eps, y.address());
     float* out = y.address();
     const float *sc = scale.address(), *sh = shift.address();
     for (int64_t r = 0; r < rows; ++r) {
-      const float* s = sc + (r / rows_per_group) * n;
-      const float* t = sh + (r / rows_per_group) * n;
+      const float* s = sc + (r / rows_per_group) * mod_stride;
+      const float* t = sh + (r / rows_per_group) * mod_stride;
       float* yr = out + r * n;
 #pragma omp simd
       for (int64_t i = 0; i < n; ++i) yr[i] = yr[i] * (1.0f + s[i]) + t[i];
@@ -128,15 +128,15 @@ class CpuBackend final : public Backend {
     cpu::add(a.address(), b.address(), n, out.address());
   }
   void scale(Ptr<float> x, int64_t n, float s) override { cpu::scale(x.address(), n, s); }
-  void gated_add(Ptr<float> x, Ptr<const float> y, Ptr<const float> gate, int64_t rows, int64_t n,
+  void gated_add(Ptr<float> x, Ptr<const float> y, Ptr<const float> gate, int64_t gate_stride, int64_t rows, int64_t n,
                  int64_t rows_per_group) override {
     if (rows_per_group < 1) throw Error(ErrorCode::invalid_argument, "gated_add: rows_per_group must be >= 1");
     float* xs = x.address();
     const float *ys = y.address(), *gs = gate.address();
     for (int64_t r = 0; r < rows; ++r) {
-      const float* g = gs + (r / rows_per_group) * n;
+      const float* g = gs + (r / rows_per_group) * gate_stride;
 #pragma omp simd
-      for (int64_t i = 0; i < n; ++i) xs[r * n + i] = xs[r * n + i] + g[i] * ys[r * n + i];
+      for (int64_t i = 0; i < n; ++i) xs[r * n + i] = xs[r * n + i] + ys[r * n + i] * g[i];
     }
   }
   void copy_rows(Ptr<const float> src, int64_t src_stride, Ptr<float> dst, int64_t dst_stride, int64_t rows,

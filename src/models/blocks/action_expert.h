@@ -33,10 +33,11 @@ class ActionExpert {
   void prepare(backend::Backend& be, const KvCache& cache, int64_t prefix_len);
   // x [batch, len, hidden] in place through every routed layer. Joint layers write their K/V to cache rows
   // [prefix_len, prefix_len + len) and attend with joint_mask [batch, len, prefix_len + len]; cross layers attend with
-  // cross_mask [batch, len, prefix_len]. Positions [batch, len] each.
+  // cross_mask [batch, len, prefix_len]. Positions [batch, len] each. `cond`: for adaptive norms (pi0.5's time).
   void forward(backend::Backend& be, backend::Ptr<float> x, int64_t batch, int64_t len, KvCache& cache,
                int64_t prefix_len, backend::Ptr<const int64_t> joint_positions, backend::Ptr<const uint8_t> joint_mask,
-               backend::Ptr<const int64_t> cross_positions, backend::Ptr<const uint8_t> cross_mask);
+               backend::Ptr<const int64_t> cross_positions, backend::Ptr<const uint8_t> cross_mask,
+               const Conditioning* cond = nullptr);
   // Matrix-product flops of prepare() and of one forward().
   double prepare_flops(int64_t batch, int64_t prefix_len) const;
   double forward_flops(int64_t batch, int64_t len, int64_t prefix_len) const;

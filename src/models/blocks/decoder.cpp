@@ -45,8 +45,6 @@ void KvCache::resize(backend::Backend& be, int64_t layers, int64_t batch_size, i
 void DecoderLayer::load(backend::Backend& be, Weights& w, const std::string& p, const DecoderConfig& cfg,
                         int64_t hidden_size, int64_t intermediate_size, int64_t kv_input, Attention kind,
                         cpu::Precision precision, bool kv_only) {
-  if (cfg.norm == NormKind::adaptive_rms)
-    throw Error(ErrorCode::unsupported, p + ": adaptive RMS norms are not wired into decoder layers yet");
   hidden = hidden_size;
   intermediate = intermediate_size;
   q_dim = cfg.heads * cfg.head_dim;
@@ -55,8 +53,14 @@ void DecoderLayer::load(backend::Backend& be, Weights& w, const std::string& p, 
   attention = kind;
   norm = cfg.norm;
   mlp = cfg.mlp;
-  input_norm = be.constant(w.f32(p + "input_layernorm.weight", {hidden}), hidden);
-  post_norm = be.constant(w.f32(p + "post_attention_layernorm.weight", {hidden}), hidden);
+  if (norm == NormKind::adaptive_rms) {
+    if (cfg.cond_dim <= 0) throw Error(ErrorCode::format, p + ": adaptive norms need a conditioning width");
+    input_mod = load_linear(be, w, p + "input_layernorm.dense", 3 * hidden, cfg.cond_dim, true, precision);
+    if (!kv_only) post_mod = load_linear(be, w, p + "post_attention_layernorm.dense", 3 * hidden, cfg.cond_dim, true, precision);
+  } else {
+    input_norm = be.constant(w.f32(p + "input_layernorm.weight", {hidden}), hidden);
+    post_norm = be.constant(w.f32(p + "post_attention_layernorm.weight", {hidden}), hidden);
+  }
 
   const std::string q = p + "self_attn.q_proj", k = p + "self_attn.k_proj", v = p + "self_attn.v_proj";
   const bool bias = cfg.attention_bias;
@@ -78,7 +82,7 @@ void DecoderLayer::load(backend::Backend& be, Weights& w, const std::string& p, 
 
 LayerFlops DecoderLayer::flops(int64_t rows, int64_t keys, int64_t heads, int64_t head_dim) const {
   LayerFlops f;
-  for (const auto* lin : {&qkv, &kv, &o, &gate_up, &down})
+  for (const auto* lin : {&qkv, &kv, &o, &gate_up, &down})  // adaptive norms' dense layers run per item, not per row
     if (*lin) f.linear += linear_flops(**lin, rows);
   f.attention = kv ? 0.0 : 4.0 * double(rows) * double(keys) * double(heads) * double(head_dim);
   return f;
@@ -94,6 +98,7 @@ void DecoderScratch::reserve(backend::Backend& be, int64_t rows, int64_t hidden,
   grow(q, rows * q_dim);
   grow(attn, rows * q_dim);
   grow(mlp, rows * 3 * intermediate);
+  grow(branch, rows * hidden);
 }
 
 namespace {
@@ -103,19 +108,47 @@ backend::RmsScale rms_scale(NormKind k) {
 Activation mlp_activation(MlpKind k) { return k == MlpKind::swiglu ? Activation::silu : Activation::gelu_tanh; }
 }  // namespace
 
+// An adaptive norm's modulation [items, scale | shift | gate] from the conditioning, into `mod`.
+void modulation(backend::Backend& be, const backend::LinearWeights& dense, int64_t hidden, const Conditioning* c,
+                backend::Array<float>& mod) {
+  if (!c || !c->cond) throw Error(ErrorCode::internal, "decoder: an adaptive norm without its conditioning");
+  if (mod.size() < c->items * 3 * hidden) mod = be.alloc<float>(c->items * 3 * hidden);
+  be.linear(dense, c->cond, c->items, mod.at());
+}
+
 void norm_input(backend::Backend& be, const DecoderLayer& L, const DecoderConfig& cfg, Ptr<const float> x, int64_t rows,
-                Ptr<float> out) {
-  be.rms_norm(x, rows, L.hidden, L.input_norm.at(), cfg.rms_norm_eps, out, rms_scale(L.norm));
+                Ptr<float> out, DecoderScratch& s, const Conditioning* c) {
+  if (L.norm != NormKind::adaptive_rms) {
+    be.rms_norm(x, rows, L.hidden, L.input_norm.at(), cfg.rms_norm_eps, out, rms_scale(L.norm));
+    return;
+  }
+  const int64_t h = L.hidden;
+  modulation(be, *L.input_mod, h, c, s.mod_in);
+  be.rms_norm_modulated(x, rows, h, s.mod_in.at(), s.mod_in.at(h), 3 * h, c->rows_per_item, cfg.rms_norm_eps, out);
 }
 
 void finish_layer(backend::Backend& be, const DecoderLayer& L, const DecoderConfig& cfg, Ptr<const float> attn,
-                  int64_t rows, Ptr<float> x, DecoderScratch& s) {
-  be.linear(*L.o, attn, rows, x, /*accumulate=*/true);
+                  int64_t rows, Ptr<float> x, DecoderScratch& s, const Conditioning* c) {
   const Ptr<float> normed = s.normed.at(), gu = s.mlp.at(), act = s.mlp.at(rows * 2 * L.intermediate);
-  be.rms_norm(x, rows, L.hidden, L.post_norm.at(), cfg.rms_norm_eps, normed, rms_scale(L.norm));
+  if (L.norm != NormKind::adaptive_rms) {
+    be.linear(*L.o, attn, rows, x, /*accumulate=*/true);
+    be.rms_norm(x, rows, L.hidden, L.post_norm.at(), cfg.rms_norm_eps, normed, rms_scale(L.norm));
+    be.linear(*L.gate_up, normed, rows, gu);
+    be.gated(gu, rows, L.intermediate, mlp_activation(L.mlp), act);
+    be.linear(*L.down, act, rows, x, /*accumulate=*/true);
+    return;
+  }
+  // Adaptive (pi0.5's expert): each residual branch is multiplied by the gate of the norm before it.
+  const int64_t h = L.hidden;
+  be.linear(*L.o, attn, rows, s.branch.at());
+  be.gated_add(x, s.branch.at(), s.mod_in.at(2 * h), 3 * h, rows, h, c->rows_per_item);
+  modulation(be, *L.post_mod, h, c, s.mod_post);
+  be.rms_norm_modulated(x, rows, h, s.mod_post.at(), s.mod_post.at(h), 3 * h, c->rows_per_item, cfg.rms_norm_eps,
+                        normed);
   be.linear(*L.gate_up, normed, rows, gu);
   be.gated(gu, rows, L.intermediate, mlp_activation(L.mlp), act);
-  be.linear(*L.down, act, rows, x, /*accumulate=*/true);
+  be.linear(*L.down, act, rows, s.branch.at());
+  be.gated_add(x, s.branch.at(), s.mod_post.at(2 * h), 3 * h, rows, h, c->rows_per_item);
 }
 
 void DecoderStack::load(backend::Backend& be, Weights& w, const std::string& prefix, const DecoderConfig& cfg,
@@ -138,7 +171,7 @@ void DecoderStack::forward(backend::Backend& be, Ptr<float> x, int64_t B, int64_
   for (std::size_t li = 0; li < layers_.size(); ++li) {
     const DecoderLayer& L = layers_[li];
     const bool kv_only = bool(L.kv);
-    norm_input(be, L, cfg_, x, rows, scratch_.normed.at());
+    norm_input(be, L, cfg_, x, rows, scratch_.normed.at(), scratch_);
     be.linear(kv_only ? *L.kv : *L.qkv, scratch_.normed.at(), rows, scratch_.qkv.at());
     const int64_t stride = kv_only ? 2 * kv_dim : q_dim + 2 * kv_dim, k_off = kv_only ? 0 : q_dim;
     if (!kv_only) be.copy_rows(scratch_.qkv.at(), stride, scratch_.q.at(), q_dim, rows, q_dim);

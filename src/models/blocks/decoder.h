@@ -24,6 +24,8 @@ struct DecoderConfig {
   NormKind norm = NormKind::rms;
   MlpKind mlp = MlpKind::swiglu;
   float rope_wavelength = 10000.0f;
+  float embedding_scale = 1.0f;  // token embeddings are multiplied by this (sqrt(hidden) for Gemma and SmolVLA)
+  int64_t cond_dim = 0;          // adaptive norms: width of the conditioning vector (pi0.5's time embedding)
   // Reads a transformers LlamaConfig object; absent fields take the upstream class defaults.
   static DecoderConfig from_llama_json(const Json& j, const std::string& where);
 };
@@ -57,6 +59,8 @@ struct DecoderLayer {
   NormKind norm = NormKind::rms;
   MlpKind mlp = MlpKind::swiglu;
   backend::Array<float> input_norm, post_norm;  // weights of the two norms (empty for adaptive norms)
+  // Adaptive norms: the conditioning's [scale | shift | gate] for each norm (`<norm>.dense`, cond_dim -> 3 * hidden).
+  std::unique_ptr<backend::LinearWeights> input_mod, post_mod;
   std::unique_ptr<backend::LinearWeights> qkv;  // self: [q | k | v]; cross: q only
   std::unique_ptr<backend::LinearWeights> k_in, v_in;  // cross: k and v from the other stream
   std::unique_ptr<backend::LinearWeights> kv;   // self, on request: [k | v] alone, for a last layer never read
@@ -68,19 +72,25 @@ struct DecoderLayer {
   LayerFlops flops(int64_t rows, int64_t keys, int64_t heads, int64_t head_dim) const;
 };
 
+// What adaptive norms are conditioned on: [items, cond_dim], one vector per batch item of rows_per_item rows.
+struct Conditioning {
+  backend::Ptr<const float> cond;
+  int64_t items = 0, rows_per_item = 0;
+};
+
 // Scratch activations of a decoder pass, sized once per shape: the steady state allocates nothing.
 struct DecoderScratch {
-  backend::Array<float> normed, qkv, q, attn, mlp;
+  backend::Array<float> normed, qkv, q, attn, mlp, branch, mod_in, mod_post;
   void reserve(backend::Backend& be, int64_t rows, int64_t hidden, int64_t q_dim, int64_t kv_dim, int64_t intermediate);
 };
 
-// The two halves of a layer's forward pass, shared by every stack and expert.
+// The two halves of a layer's forward pass, shared by every stack and expert. `cond` is needed by adaptive norms only.
 // Input norm: out = norm(x) (the layer's first norm).
 void norm_input(backend::Backend& be, const DecoderLayer& L, const DecoderConfig& cfg, backend::Ptr<const float> x,
-                int64_t rows, backend::Ptr<float> out);
-// After attention: x += o(attn); x += mlp(post_norm(x)).
+                int64_t rows, backend::Ptr<float> out, DecoderScratch& s, const Conditioning* cond = nullptr);
+// After attention: x += o(attn); x += mlp(post_norm(x)); with adaptive norms each branch is scaled by its gate.
 void finish_layer(backend::Backend& be, const DecoderLayer& L, const DecoderConfig& cfg, backend::Ptr<const float> attn,
-                  int64_t rows, backend::Ptr<float> x, DecoderScratch& s);
+                  int64_t rows, backend::Ptr<float> x, DecoderScratch& s, const Conditioning* cond = nullptr);
 
 // A decoder over a prefix whose keys and values are kept for later tokens. The last layer may be `kv_only`: when
 // nothing reads the stack's output, only that layer's K/V are computed.
