@@ -17,11 +17,11 @@ int main(int argc, char** argv) try {
   const tether::vision::Image img = tether::vision::load_image(path);
   for (const int side : {512, 128}) {
     std::vector<float> out(std::size_t(3) * side * side);
-    tether::vision::preprocess_smolvla(img, side, side, out.data());  // warm-up: index tables reach their size
+    tether::vision::resize_with_pad_normalized(img, side, side, out.data());  // warm-up: index tables reach their size
     std::vector<double> ms;
     for (int i = 0; i < 30; ++i) {
       const auto t0 = std::chrono::steady_clock::now();
-      tether::vision::preprocess_smolvla(img, side, side, out.data());
+      tether::vision::resize_with_pad_normalized(img, side, side, out.data());
       ms.push_back(std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - t0).count());
     }
     std::sort(ms.begin(), ms.end());

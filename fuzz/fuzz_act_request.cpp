@@ -14,6 +14,7 @@ const tether::models::ModelSpec& spec() {
     tether::models::ModelSpec m;
     m.family = "smolvla";
     m.cameras = {"observation.images.front", "observation.images.wrist"};
+    m.camera_prefix = "observation.images.";
     m.state_dim = 3;
     m.action_dim = 3;
     m.chunk_size = 4;
@@ -37,7 +38,7 @@ extern "C" int LLVMFuzzerTestOneInput(const uint8_t* data, size_t size) {
     const auto& obs = req.observation;
     if (int64_t(obs.state.size()) != spec().state_dim || obs.images.empty()) __builtin_trap();
     for (const auto& [camera, img] : obs.images) {
-      if (!tether::serve::resolve_camera(camera, spec().cameras)) __builtin_trap();
+      if (!tether::serve::resolve_camera(camera, spec())) __builtin_trap();
       if (img.rgb.size() != std::size_t(img.height) * std::size_t(img.width) * 3 || img.rgb.empty()) __builtin_trap();
     }
   } catch (const tether::serve::HttpError& e) {

@@ -51,6 +51,8 @@ double mean_of(const std::vector<double>& v) { return std::accumulate(v.begin(),
 // interleaved so that load on the machine hits both alike: steps used, latency of each, and how far the adaptive
 // actions land from the full-step ones.
 Json compare_adaptive(policy::Policy& policy, const policy::Observation& obs, const BenchArgs& a) {
+  // The sampler's stage: the model's last one.
+  const std::string sampling = policy.spec().stages.empty() ? std::string() : policy.spec().stages.back();
   std::vector<double> full_ms, adaptive_ms, full_denoise, adaptive_denoise, steps;
   double max_diff = 0, max_action = 0;
   for (int i = 0; i < a.warmup + a.iterations; ++i) {
@@ -62,8 +64,8 @@ Json compare_adaptive(policy::Policy& policy, const policy::Observation& obs, co
     if (i < a.warmup) continue;
     full_ms.push_back(full.total_ms);
     adaptive_ms.push_back(fast.total_ms);
-    full_denoise.push_back(full.timings.denoise_ms);
-    adaptive_denoise.push_back(fast.timings.denoise_ms);
+    full_denoise.push_back(full.timings.get(sampling));
+    adaptive_denoise.push_back(fast.timings.get(sampling));
     for (std::size_t j = 0; j < fast.items.size(); ++j) {
       steps.push_back(fast.items[j].denoise_steps_used);
       const auto& x = full.items[j].actions;
@@ -98,16 +100,17 @@ int run_bench(const BenchArgs& a) {
   const std::vector<policy::Observation> batch(std::size_t(a.batch), obs);
 
   for (int i = 0; i < a.warmup; ++i) policy->predict(batch);
-  std::vector<double> total, vision, prefix, denoise, pre, post;
+  // Per model stage (the first one also carries the policy's normalisation), then the post-processing.
+  const std::vector<std::string>& stage_names = policy->spec().stages;
+  std::vector<std::vector<double>> stage_ms(stage_names.size());
+  std::vector<double> total, post;
   policy::Prediction last;
   const auto start = std::chrono::steady_clock::now();
   for (int i = 0; i < a.iterations; ++i) {
     last = policy->predict(batch);
     total.push_back(last.total_ms);
-    pre.push_back(last.normalize_ms + last.timings.preprocess_ms);
-    vision.push_back(last.timings.vision_ms);
-    prefix.push_back(last.timings.prefix_ms);
-    denoise.push_back(last.timings.denoise_ms);
+    for (std::size_t s = 0; s < stage_names.size(); ++s)
+      stage_ms[s].push_back(last.timings.get(stage_names[s]) + (s == 0 ? last.normalize_ms : 0.0));
     post.push_back(last.postprocess_ms);
   }
   const double wall_s = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
@@ -133,9 +136,7 @@ int run_bench(const BenchArgs& a) {
         {"p95", percentile(total, 95)},
         {"p99", percentile(total, 99)},
         {"max", *std::max_element(total.begin(), total.end())}}},
-      {"stages_ms",
-       {{"preprocess", mean(pre)}, {"vision", mean(vision)}, {"prefix", mean(prefix)}, {"denoise", mean(denoise)},
-        {"post", mean(post)}}},
+      {"stages_ms", Json::object()},
       {"throughput_per_s", double(a.iterations) * a.batch / wall_s},
       // Matrix-product work (2 flops per multiply-add) per chunk, and the rate the mean latency achieves.
       {"gflop_per_chunk", last.flops / double(a.batch) / 1e9},
@@ -147,6 +148,8 @@ int run_bench(const BenchArgs& a) {
       {"cpu_dispatch", cpu::cpu_paths_summary()},
       {"threads", cpu::blas_threads()},
   };
+  for (std::size_t s = 0; s < stage_names.size(); ++s) report["stages_ms"][stage_names[s]] = mean(stage_ms[s]);
+  report["stages_ms"]["post"] = mean(post);
   if (a.adaptive_threshold >= 0) report["adaptive"] = compare_adaptive(*policy, obs, a);
   if (a.json) {
     std::cout << report.dump(2) << "\n";
@@ -160,8 +163,13 @@ int run_bench(const BenchArgs& a) {
   std::printf("  latency ms   mean %.2f  p50 %.2f  p95 %.2f  p99 %.2f  max %.2f\n", report["latency_ms"]["mean"].get<double>(),
               report["latency_ms"]["p50"].get<double>(), report["latency_ms"]["p95"].get<double>(),
               report["latency_ms"]["p99"].get<double>(), report["latency_ms"]["max"].get<double>());
-  std::printf("  stages ms    preprocess %.2f  vision %.2f  prefix %.2f  denoise %.2f  post %.2f\n", mean(pre),
-              mean(vision), mean(prefix), mean(denoise), mean(post));
+  std::string stages_line;
+  char cell[96];
+  for (auto it = report["stages_ms"].begin(); it != report["stages_ms"].end(); ++it) {
+    std::snprintf(cell, sizeof cell, "%s%s %.2f", stages_line.empty() ? "" : "  ", it.key().c_str(), it->get<double>());
+    stages_line += cell;
+  }
+  std::printf("  stages ms    %s\n", stages_line.c_str());
   std::printf("  compute      %.2f GFLOP per chunk, %.1f GFLOP/s achieved\n", report["gflop_per_chunk"].get<double>(),
               report["gflop_per_s"].get<double>());
   std::printf("  throughput   %.2f chunks/s\n  peak RSS     %.1f MB\n  load         %.1f ms\n",

@@ -20,8 +20,10 @@
 #include "cli/hardware.h"
 #include "cli/registry.h"
 #include "core/hash.h"
+#include "core/hf_paths.h"
 #include "core/json_util.h"
 #include "core/safetensors.h"
+#include "models/family.h"
 
 namespace tether::cli {
 
@@ -123,14 +125,9 @@ void memory_checks(std::vector<Check>& out) {
   const bool ok = avail > int64_t(2) * 1024 * 1024 * 1024;
   out.push_back({"memory", "RAM", ok ? Status::ok : Status::warn,
                  gb(double(avail)) + " available of " + gb(double(total)),
-                 "a full-size SmolVLA needs about 1.5 GB in float32; close other processes or use a smaller model"});
+                 "a full-size model needs several GB in float32 (SmolVLA: about 1.5 GB); close other processes or use a smaller model"});
   for (const auto& [label, dir] :
-       {std::pair<std::string, fs::path>{"model cache", [] {
-          if (const char* v = std::getenv("HF_HUB_CACHE")) return fs::path(v);
-          if (const char* h = std::getenv("HF_HOME")) return fs::path(h) / "hub";
-          const char* home = std::getenv("HOME");
-          return fs::path(home ? home : "/") / ".cache" / "huggingface" / "hub";
-        }()}}) {
+       {std::pair<std::string, fs::path>{"model cache", fs::path(hf_hub_cache())}}) {
     fs::path probe = dir;
     while (!probe.empty() && !fs::exists(probe)) probe = probe.parent_path();
     struct statvfs st {};
@@ -180,32 +177,59 @@ void cuda_checks(std::vector<Check>& out) {
 
 void model_checks(const std::string& dir, std::vector<Check>& out) {
   const fs::path d(dir);
-  for (const char* f : {"config.json", "model.safetensors"}) {
-    const bool ok = fs::exists(d / f);
-    out.push_back({"model", f, ok ? Status::ok : Status::fail, ok ? (d / f).string() : (d / f).string() + " missing",
-                   "point at a LeRobot checkpoint directory (it has config.json and model.safetensors)"});
+  const bool has_config = fs::exists(d / "config.json");
+  out.push_back({"model", "config.json", has_config ? Status::ok : Status::fail,
+                 has_config ? (d / "config.json").string() : (d / "config.json").string() + " missing",
+                 "point at a checkpoint directory (it has config.json and its weights)"});
+  // The family decides where the weights are and how the normaliser is read; without one, the conventional names.
+  const models::FamilyDescriptor* family = nullptr;
+  if (has_config) {
+    try {
+      family = &models::recognise(d);
+      out.push_back({"model", "family", Status::ok, family->name + " (" + family->recognition + ")", ""});
+    } catch (const Error& e) {
+      out.push_back({"model", "family", Status::fail, e.what(), "use a checkpoint of a supported family"});
+    }
   }
-  for (const char* f : {"policy_preprocessor.json", "policy_postprocessor.json"}) {
-    const bool ok = fs::exists(d / f);
-    out.push_back({"model", f, ok ? Status::ok : Status::warn, ok ? "present" : "missing: normalisation falls back to config.json without stats",
-                   "export the processors with the checkpoint (lerobot saves them next to the policy)"});
+  const std::vector<std::string> files =
+      family ? family->weight_files(d) : models::TensorStore::files_in(d.string());
+  if (files.empty()) {
+    out.push_back({"model", "weights", Status::fail,
+                   (d / models::kSingleWeightsFile).string() + " missing (nor a " + models::kShardIndexFile + ")",
+                   "point at a checkpoint directory with its weights (model.safetensors, or an index and its shards)"});
+    return;
   }
-  if (!fs::exists(d / "model.safetensors")) return;
   try {
-    const SafeTensorsFile f = SafeTensorsFile::open((d / "model.safetensors").string());
+    models::TensorStore store = family ? family->open_weights(d) : models::TensorStore::open_dir(d.string());
     int64_t params = 0;
-    for (const auto& name : f.names()) params += shape_numel(f.entry(name).shape);
+    for (const auto& name : store.names()) params += shape_numel(store.entry(name).shape);
+    double bytes = 0;
+    for (const auto& f : files) bytes += double(fs::file_size(d / f));
     const double need = double(params) * 4.0 * 1.1;  // float32 weights plus activations
     const double avail = double(meminfo_bytes("MemAvailable"));
     out.push_back({"model", "weights", Status::ok,
-                   count_str(params) + " parameters, " + gb(double(fs::file_size(d / "model.safetensors"))) + " on disk", ""});
-    out.push_back({"model", "sha256", Status::ok, "model.safetensors " + sha256_file_hex((d / "model.safetensors").string()),
+                   count_str(params) + " parameters, " + gb(bytes) + " on disk" +
+                       (store.sharded() ? " in " + std::to_string(files.size() - 1) + " shards" : ""),
                    ""});
+    const std::string hash = models::weights_hash(d, files);
+    out.push_back({"model", "sha256", Status::ok,
+                   (files.size() == 1 ? files[0] : std::string("weights")) + " " + hash.substr(hash.find(':') + 1), ""});
     out.push_back({"model", "fits in memory (fp32)", need < avail ? Status::ok : Status::fail,
                    "needs about " + gb(need) + ", " + gb(avail) + " available",
-                   "free memory, or export in bf16 (about half) when that precision lands"});
+                   "free memory, or export in bf16 (about half)"});
+    if (family && has_config) {
+      const models::Normalization n = family->load_normalization(d, read_json_file((d / "config.json").string()), store);
+      out.push_back({"model", "normalisation", n.warnings.empty() ? Status::ok : Status::warn,
+                     n.warnings.empty() ? "statistics present for every normalised feature"
+                                        : [&] {
+                                            std::string all;
+                                            for (const auto& w : n.warnings) all += (all.empty() ? "" : "; ") + w;
+                                            return all;
+                                          }(),
+                     "ship the dataset statistics with the checkpoint (lerobot saves them with its processors)"});
+    }
   } catch (const Error& e) {
-    out.push_back({"model", "weights", Status::fail, e.what(), "re-download the checkpoint: the file is damaged"});
+    out.push_back({"model", "weights", Status::fail, e.what(), "re-download the checkpoint: the files are damaged"});
   }
 }
 

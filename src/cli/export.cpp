@@ -1,11 +1,13 @@
-// `tether export`: a self-contained deployment directory (weights in the chosen precision, config, normalisation
-// stats, backbone tokenizer and config) plus VERIFICATION.md, a receipt of what was exported and how far the export
-// is from the fp32 source on seeded inputs (and from upstream when the source is an oracle fixture).
+// `tether export`: a self-contained deployment directory (weights in the chosen precision, config, and what the
+// family's ExportPlan says the model needs: normalisation stats, backbone tokenizer and config) plus
+// VERIFICATION.md, a receipt of what was exported and how far the export is from the fp32 source on seeded inputs
+// (and from upstream when the source is an oracle fixture).
 // Deterministic: exporting the same input twice gives byte-identical files.
 #include <cstdio>
 #include <filesystem>
 #include <fstream>
 #include <iostream>
+#include <set>
 #include <sstream>
 
 #include "cli/commands.h"
@@ -14,7 +16,7 @@
 #include "cli/verify.h"
 #include "core/hash.h"
 #include "core/safetensors.h"
-#include "models/backbone.h"
+#include "models/family.h"
 #include "policy/embodiment.h"
 
 namespace tether::cli {
@@ -36,15 +38,17 @@ std::string resolve_source(const std::string& source) {
   throw Error(ErrorCode::not_found, source + ": not on disk yet (tether models pull " + source + ")");
 }
 
-// Floating-point tensors converted to `precision`; everything else copied as is. Names stay sorted.
-void convert_weights(const std::string& in, const std::string& out, const std::string& precision) {
+// Floating-point tensors converted to `precision` (except those in `keep`); everything else copied as is. Names stay
+// sorted.
+void convert_weights(const std::string& in, const std::string& out, const std::string& precision,
+                     const std::set<std::string>& keep) {
   const SafeTensorsFile f = SafeTensorsFile::open(in);
   std::map<std::string, Tensor> tensors;
   std::vector<std::shared_ptr<std::vector<uint16_t>>> halves;
   for (const auto& name : f.names()) {
     Tensor t = f.get(name);
     const bool floating = t.dtype == DType::f32 || t.dtype == DType::bf16 || t.dtype == DType::f16;
-    if (!floating || precision == "fp32") {
+    if (!floating || precision == "fp32" || keep.count(name)) {
       if (floating && t.dtype != DType::f32) t = Tensor::from_f32(t.shape, t.to_f32());
       tensors[name] = t;
       continue;
@@ -84,23 +88,21 @@ double export_checkpoint(const std::string& src, const std::string& out_dir, con
   if (fs::exists(out) && !fs::is_directory(out)) throw Error(ErrorCode::invalid_argument, a.out + ": exists and is not a directory");
   const Json target = a.target.empty() ? Json(nullptr) : deployment_target(a.target);
 
-  // Source files and their hashes (the receipt names exactly what was exported).
-  std::vector<std::string> names;
-  for (const auto& e : fs::directory_iterator(src)) {
-    const std::string name = e.path().filename().string();
-    if (e.is_regular_file() && (name == "config.json" || name == "model.safetensors" ||
-                                (name.rfind("policy_", 0) == 0 && (name.ends_with(".json") || name.ends_with(".safetensors")))))
-      names.push_back(name);
-  }
-  std::sort(names.begin(), names.end());  // directory order is the filesystem's: sort for a deterministic receipt
+  // What the family says the export carries (models/family.h); the receipt names exactly what was exported.
+  const fs::path src_dir(src);
+  const models::FamilyDescriptor& family = models::recognise(src_dir);
+  const std::vector<std::string> weights = family.weight_files(src_dir);
+  if (weights.empty()) throw Error(ErrorCode::not_found, src + ": no weights (" + models::kSingleWeightsFile + " or " +
+                                                             models::kShardIndexFile + ")");
+  const Json config = read_json_file((src_dir / "config.json").string());
+  const models::ExportPlan plan = family.export_plan(src_dir, config);
+  std::vector<std::string> names = {"config.json"};
+  names.insert(names.end(), weights.begin(), weights.end());
+  names.insert(names.end(), plan.copy.begin(), plan.copy.end());
+  std::sort(names.begin(), names.end());  // a deterministic receipt
+  names.erase(std::unique(names.begin(), names.end()), names.end());
   Json source_files = Json::object();
-  std::vector<std::string> copied;
-  for (const auto& name : names) {
-    source_files[name] = sha256_file_hex((fs::path(src) / name).string());
-    if (name != "config.json" && name != "model.safetensors") copied.push_back(name);
-  }
-  Json config = read_json_file((fs::path(src) / "config.json").string());
-  const fs::path backbone = models::find_backbone_dir(src, json_get<std::string>(config, "vlm_model_name", src + "/config.json"));
+  for (const auto& name : names) source_files[name] = sha256_file_hex((src_dir / name).string());
 
   auto reference = policy::Policy::load(src);
   if (embodiment && int64_t(embodiment->joints.size()) != reference->spec().action_dim)
@@ -110,13 +112,18 @@ double export_checkpoint(const std::string& src, const std::string& out_dir, con
 
   // Write the deployment directory.
   fs::create_directories(out);
-  for (const auto& name : copied) fs::copy_file(fs::path(src) / name, out / name, fs::copy_options::overwrite_existing);
-  fs::create_directories(out / "vlm");
-  for (const auto& name : models::backbone_files(backbone))
-    fs::copy_file(backbone / name, out / "vlm" / name, fs::copy_options::overwrite_existing);
-  config["vlm_model_name"] = "vlm";  // the backbone travels with the export
-  std::ofstream(out / "config.json", std::ios::binary | std::ios::trunc) << config.dump(4) << "\n";
-  convert_weights((fs::path(src) / "model.safetensors").string(), (out / "model.safetensors").string(), a.precision);
+  for (const auto& name : plan.copy) fs::copy_file(src_dir / name, out / name, fs::copy_options::overwrite_existing);
+  for (const auto& bundle : plan.bundles) {
+    fs::create_directories(out / bundle.to);
+    for (const auto& name : bundle.files)
+      fs::copy_file(bundle.from / name, out / bundle.to / name, fs::copy_options::overwrite_existing);
+  }
+  std::ofstream(out / "config.json", std::ios::binary | std::ios::trunc) << plan.config.dump(4) << "\n";
+  const std::set<std::string> keep(plan.keep_dtype.begin(), plan.keep_dtype.end());
+  for (const auto& name : weights) {
+    if (name.ends_with(".safetensors")) convert_weights((src_dir / name).string(), (out / name).string(), a.precision, keep);
+    else fs::copy_file(src_dir / name, out / name, fs::copy_options::overwrite_existing);  // the shard index
+  }
   if (embodiment) fs::copy_file(embodiment_file, out / kExportEmbodimentFile, fs::copy_options::overwrite_existing);
   else fs::remove(out / kExportEmbodimentFile);
 
@@ -152,7 +159,9 @@ double export_checkpoint(const std::string& src, const std::string& out_dir, con
      << ".\n\n"
      << "## Source\n\n`" << fs::absolute(src).lexically_normal().string() << "`\n\n| file | sha256 |\n|---|---|\n";
   for (auto it = source_files.begin(); it != source_files.end(); ++it) md << "| " << it.key() << " | " << it->get<std::string>() << " |\n";
-  md << "\nBackbone files copied from `" << backbone.string() << "` into `vlm/`.\n\n## Output files\n\n| file | sha256 |\n|---|---|\n";
+  for (const auto& bundle : plan.bundles)
+    md << "\nBackbone files copied from `" << bundle.from.string() << "` into `" << bundle.to << "/`.\n";
+  md << "\n## Output files\n\n| file | sha256 |\n|---|---|\n";
   for (auto it = files.begin(); it != files.end(); ++it) md << "| " << it.key() << " | " << it->get<std::string>() << " |\n";
   md << "\n## Measured difference\n\nAction chunks (robot units) of the export against the fp32 source, both run by Tether in float32 "
         "on seeded inputs (pseudo-random frames, states and noise):\n\n"

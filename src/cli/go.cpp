@@ -15,13 +15,19 @@
 #include "cli/registry.h"
 #include "core/json_util.h"
 #include "hub/hub_client.h"
-#include "models/model.h"
+#include "models/family.h"
 
 namespace tether::cli {
 
 namespace fs = std::filesystem;
 
 namespace {
+
+std::string supported_families() {
+  std::string out;
+  for (const auto& f : models::model_families()) out += (out.empty() ? "" : ", ") + f;
+  return out;
+}
 
 fs::path tether_cache() {
   if (const char* v = std::getenv("TETHER_CACHE"); v && *v) return v;
@@ -76,7 +82,7 @@ Verb add_go(CLI::App& app) {
                          gpu_summary(machine.gpu).c_str());
             if (!e.supported)
               throw Error(ErrorCode::unsupported, "--model " + e.id + ": the " + e.family +
-                                                      " family is not supported by this Tether build yet (supported: smolvla)");
+                                                      " family is not supported by this Tether build yet (supported: " + supported_families() + ")");
             const PrecisionChoice choice = choose_precision(
                 machine, e.id, e.parameters, sub->get_option("--precision")->count() ? args->flags.precision : "");
             std::fprintf(stderr, "tether go: %s\n", choice.reason.c_str());

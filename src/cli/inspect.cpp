@@ -6,7 +6,6 @@
 #include "cli/commands.h"
 #include "cli/registry.h"
 #include "core/json_util.h"
-#include "core/safetensors.h"
 #include "policy/policy.h"
 
 namespace tether::cli {
@@ -42,7 +41,7 @@ int run_targets(const InspectArgs& a) {
 int run_model(const InspectArgs& a) {
   auto policy = policy::Policy::load(a.model);
   const auto& s = policy->spec();
-  const SafeTensorsFile f = SafeTensorsFile::open((fs::path(a.model) / "model.safetensors").string());
+  const models::TensorStore f = policy->family().open_weights(a.model);
   int64_t params = 0;
   std::map<std::string, int64_t> by_dtype;
   for (const auto& name : f.names()) {
@@ -59,6 +58,9 @@ int run_model(const InspectArgs& a) {
                     {"chunk_size", s.chunk_size},
                     {"num_steps", s.num_steps},
                     {"weights_dtype", s.weights_dtype},
+                    {"weight_files", policy->weight_files()},
+                    {"tokenizer", s.tokenizer},
+                    {"stages", s.stages},
                     {"parameters", params},
                     {"parameters_by_dtype", by_dtype},
                     {"tensors", f.names().size()},

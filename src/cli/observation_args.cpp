@@ -1,3 +1,4 @@
+// The observation flags shared by predict, bench and verify (--image, --state, --instruction, --seed, --noise).
 #include "cli/observation_args.h"
 
 #include <sstream>
@@ -42,12 +43,11 @@ std::string inference_mode(const models::ModelSpec& spec) {
 
 namespace {
 
-// Accepts the checkpoint's camera key or its short form ("camera1" for "observation.images.camera1").
-std::string resolve_camera(const std::string& name, const std::vector<std::string>& cameras) {
-  for (const auto& c : cameras)
-    if (c == name || c == "observation.images." + name) return c;
+// Accepts the checkpoint's camera key or its short form (the key without the spec's camera prefix).
+std::string resolve_camera(const std::string& name, const models::ModelSpec& spec) {
+  if (auto c = models::find_camera(spec, name)) return *c;
   std::string known;
-  for (const auto& c : cameras) known += (known.empty() ? "" : ", ") + c;
+  for (const auto& c : spec.cameras) known += (known.empty() ? "" : ", ") + c;
   throw Error(ErrorCode::invalid_argument, "--image: the model has no camera '" + name + "' (it has: " + known + ")");
 }
 
@@ -73,7 +73,7 @@ policy::Observation ObservationArgs::build(const policy::Policy& policy) const {
     const auto eq = spec_str.find('=');
     if (eq == std::string::npos)
       throw Error(ErrorCode::invalid_argument, "--image expects CAMERA=FILE, got '" + spec_str + "'");
-    obs.images[resolve_camera(spec_str.substr(0, eq), spec.cameras)] = vision::load_image(spec_str.substr(eq + 1));
+    obs.images[resolve_camera(spec_str.substr(0, eq), spec)] = vision::load_image(spec_str.substr(eq + 1));
   }
   if (images.empty()) obs.images = policy::synthetic_observation(spec).images;
   obs.state = state.empty() ? std::vector<float>(std::size_t(spec.state_dim), 0.f) : parse_floats(state, "--state");

@@ -31,14 +31,10 @@ int run_predict(const PredictArgs& a) {
   const policy::Prediction p = policy->predict({obs});
   const policy::ActionChunk& chunk = p.items.at(0);
   for (const auto& w : chunk.warnings) std::cerr << "warning: " << w << "\n";
-  const Json latency = {{"load", load_ms},
-                        {"normalize", p.normalize_ms},
-                        {"preprocess", p.timings.preprocess_ms},
-                        {"vision", p.timings.vision_ms},
-                        {"prefix", p.timings.prefix_ms},
-                        {"denoise", p.timings.denoise_ms},
-                        {"postprocess", p.postprocess_ms},
-                        {"total", p.total_ms}};
+  Json latency = {{"load", load_ms}, {"normalize", p.normalize_ms}};
+  for (const auto& stage : spec.stages) latency[stage] = p.timings.get(stage);  // the model's stages, in order
+  latency["postprocess"] = p.postprocess_ms;
+  latency["total"] = p.total_ms;
   if (a.json) {
     Json actions = Json::array();
     for (int64_t r = 0; r < chunk.chunk_size; ++r)
@@ -71,7 +67,7 @@ int run_predict(const PredictArgs& a) {
 Verb add_predict(CLI::App& app) {
   auto args = std::make_shared<PredictArgs>();
   CLI::App* sub = app.add_subcommand("predict", "Run one observation through a checkpoint and print the action chunk");
-  sub->add_option("checkpoint", args->checkpoint, "Checkpoint directory (LeRobot layout)")->required();
+  sub->add_option("checkpoint", args->checkpoint, "Checkpoint directory")->required();
   args->observation.add_to(sub, /*required=*/true);
   add_precision_flag(sub, args->precision);
   sub->add_flag("--json", args->json, "Print JSON instead of a table");

@@ -10,7 +10,7 @@
 #include "cli/commands.h"
 
 #include "hub/hub_client.h"
-#include "models/model.h"
+#include "models/family.h"
 
 namespace tether::cli {
 

@@ -1,3 +1,4 @@
+// Measuring how far one policy's action chunks are from another's or from the oracle's fixture outputs (see verify.h).
 #include "cli/verify.h"
 
 #include <cmath>

@@ -14,6 +14,7 @@
 #include <random>
 #include <sstream>
 
+#include "core/hf_paths.h"
 #include "hub/hash.h"
 #include "hub/hub_error.h"
 
@@ -21,18 +22,6 @@ namespace fs = std::filesystem;
 
 namespace tether::hub {
 namespace {
-
-std::string env_or_empty(const char* name) {
-  const char* v = std::getenv(name);
-  return v ? std::string(v) : std::string();
-}
-
-// "~" and "~/..." expand to $HOME, as os.path.expanduser does for the env values huggingface_hub
-// reads.
-std::string expand_user(const std::string& p) {
-  if (p.empty() || p[0] != '~' || (p.size() > 1 && p[1] != '/')) return p;
-  return env_or_empty("HOME") + p.substr(1);
-}
 
 bool has_bad_component(const std::string& path) {
   std::stringstream ss(path);
@@ -48,21 +37,9 @@ void fs_fail(const std::string& what, const std::string& path, const std::error_
 
 }  // namespace
 
-std::string default_hf_home() {
-  std::string home = env_or_empty("HF_HOME");
-  if (!home.empty()) return expand_user(home);
-  std::string xdg = env_or_empty("XDG_CACHE_HOME");
-  if (!xdg.empty()) return expand_user(xdg) + "/huggingface";
-  return env_or_empty("HOME") + "/.cache/huggingface";
-}
+std::string default_hf_home() { return hf_home(); }
 
-std::string default_cache_root() {
-  for (const char* name : {"HF_HUB_CACHE", "HUGGINGFACE_HUB_CACHE"}) {
-    std::string v = env_or_empty(name);
-    if (!v.empty()) return expand_user(v);
-  }
-  return default_hf_home() + "/hub";
-}
+std::string default_cache_root() { return hf_hub_cache(); }
 
 void validate_repo_id(const std::string& repo_id) {
   auto fail = [&](const std::string& why) {

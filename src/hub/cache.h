@@ -12,11 +12,8 @@
 
 namespace tether::hub {
 
-// HF_HUB_CACHE, else HUGGINGFACE_HUB_CACHE, else $HF_HOME/hub, else
-// $XDG_CACHE_HOME/huggingface/hub, else
-// ~/.cache/huggingface/hub (the order huggingface_hub uses).
+// tether::hf_hub_cache() and tether::hf_home() (core/hf_paths.h), where the precedence is defined once.
 std::string default_cache_root();
-// $HF_HOME, else $XDG_CACHE_HOME/huggingface, else ~/.cache/huggingface.
 std::string default_hf_home();
 
 // Throw HubError(invalid) for ids and paths huggingface_hub would also refuse, or that would escape

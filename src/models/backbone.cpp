@@ -1,25 +1,14 @@
+// Locating a policy's backbone files: relative to the checkpoint, an absolute path, or the local hub cache.
 #include "models/backbone.h"
 
-#include <cstdlib>
 #include <fstream>
 
 #include "core/error.h"
+#include "core/hf_paths.h"
 
 namespace tether::models {
 
 namespace fs = std::filesystem;
-
-namespace {
-
-fs::path hub_cache_root() {
-  if (const char* v = std::getenv("HF_HUB_CACHE"); v && *v) return v;
-  if (const char* v = std::getenv("HF_HOME"); v && *v) return fs::path(v) / "hub";
-  if (const char* v = std::getenv("XDG_CACHE_HOME"); v && *v) return fs::path(v) / "huggingface" / "hub";
-  const char* home = std::getenv("HOME");
-  return fs::path(home ? home : "/") / ".cache" / "huggingface" / "hub";
-}
-
-}  // namespace
 
 fs::path find_backbone_dir(const fs::path& checkpoint_dir, const std::string& name) {
   std::vector<fs::path> tried;
@@ -32,7 +21,7 @@ fs::path find_backbone_dir(const fs::path& checkpoint_dir, const std::string& na
   if (name.find('/') != std::string::npos && !fs::path(name).is_absolute()) {
     std::string repo = "models--";
     for (char c : name) repo += c == '/' ? std::string("--") : std::string(1, c);
-    const fs::path repo_dir = hub_cache_root() / repo;
+    const fs::path repo_dir = fs::path(hf_hub_cache()) / repo;
     std::string revision = "main";
     if (std::ifstream ref(repo_dir / "refs" / "main"); ref) std::getline(ref, revision);
     if (usable(repo_dir / "snapshots" / revision)) return repo_dir / "snapshots" / revision;

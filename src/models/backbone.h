@@ -9,8 +9,7 @@
 namespace tether::models {
 
 // The directory holding `name`'s config.json: `name` relative to the checkpoint directory, an absolute path, or the
-// snapshot of Hugging Face repo `name` in the local hub cache (HF_HUB_CACHE, HF_HOME/hub, XDG_CACHE_HOME or
-// ~/.cache, refs/main). Throws not_found naming every place looked at.
+// snapshot of Hugging Face repo `name` in the local hub cache (tether::hf_hub_cache(), refs/main). Throws not_found naming every place looked at.
 std::filesystem::path find_backbone_dir(const std::filesystem::path& checkpoint_dir, const std::string& name);
 
 // The backbone files a deployment needs (architecture, tokenizer, processor settings), those present in `dir`.

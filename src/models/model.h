@@ -1,4 +1,5 @@
-// The interface every model family implements, and the registry that maps a checkpoint's "type" to one.
+// The interface every model family implements: a spec of what it takes and gives, and a batched predict.
+// How a checkpoint is recognised and loaded is the family descriptor's (models/family.h).
 #pragma once
 
 #include <cstdint>
@@ -28,8 +29,11 @@ struct ModelInput {
   DenoiseControl denoise;  // adaptive steps, RTC guidance; default: plain Euler over every step
 };
 
+// Milliseconds per stage, named as ModelSpec::stages names them, in that order.
 struct StageTimings {
-  double preprocess_ms = 0, vision_ms = 0, prefix_ms = 0, denoise_ms = 0;
+  std::vector<std::pair<std::string, double>> ms;
+  void set(const std::string& stage, double value);  // replaces or appends
+  double get(const std::string& stage) const;        // 0 when the stage did not run
 };
 
 struct ModelOutput {
@@ -42,9 +46,16 @@ struct ModelOutput {
 };
 
 struct ModelSpec {
-  std::string family;
-  std::vector<std::string> cameras;  // camera keys in model order
-  std::string state_key = "observation.state", action_key = "action";
+  std::string family;                // the family descriptor's name
+  std::vector<std::string> cameras;  // camera keys in model order, as the checkpoint names them
+  // Cameras the model fills itself (placeholders its config declares); a client never sends them.
+  std::vector<std::string> synthetic_cameras;
+  // A camera may also be named by its key without this prefix ("camera1" for "observation.images.camera1").
+  std::string camera_prefix;
+  std::string missing_camera_rule;  // one sentence: what happens to a camera a request leaves out
+  std::vector<std::string> stages;  // the model's timed stages in order (StageTimings names)
+  std::string tokenizer;            // tokenizer kind: "byte_level_bpe", "sentencepiece"
+  std::string state_key, action_key;  // the feature keys the normaliser knows them by
   int64_t state_dim = 0, action_dim = 0, chunk_size = 0, num_steps = 0;
   int64_t max_state_dim = 0, max_action_dim = 0;
   int64_t image_height = 0, image_width = 0;  // what the vision tower receives
@@ -79,10 +90,9 @@ class Model {
   DebugHook debug_;
 };
 
-// Loads the family named by config["type"] from a checkpoint directory.
-std::unique_ptr<Model> load_model(const std::string& checkpoint_dir, const Json& policy_config,
-                                  const LoadOptions& options = {});
-std::vector<std::string> model_families();
+// The camera key `name` stands for: the key itself, or the key without spec.camera_prefix; nullopt when the model
+// has no such camera.
+std::optional<std::string> find_camera(const ModelSpec& spec, const std::string& name);
 
 // Standard-normal noise from a seed: the same seed gives the same noise on every platform (explicit
 // Box-Muller over a 64-bit Mersenne Twister, not std::normal_distribution, whose algorithm varies).

@@ -1,36 +1,105 @@
-// Model family registry: adding a family is one file plus one line here.
+// Model family registry: adding a family is one file (or folder) under src/models/ plus one line in kFamilies.
 #include <cmath>
+#include <filesystem>
 #include <random>
 
-#include "models/model.h"
+#include "core/hash.h"
+#include "models/family.h"
 #include "models/smolvla.h"
 
 namespace tether::models {
 
-namespace {
-struct Family {
-  const char* type;
-  std::unique_ptr<Model> (*load)(const std::string& dir, const Json& config, const LoadOptions& options);
-};
-constexpr Family kFamilies[] = {
-    {"smolvla", &load_smolvla},
-};
-}  // namespace
+namespace fs = std::filesystem;
 
-std::unique_ptr<Model> load_model(const std::string& dir, const Json& config, const LoadOptions& options) {
-  const std::string type = json_get<std::string>(config, "type", dir + "/config.json");
-  for (const auto& f : kFamilies)
-    if (type == f.type) return f.load(dir, config, options);
-  std::string known;
-  for (const auto& f : kFamilies) known += std::string(known.empty() ? "" : ", ") + f.type;
-  throw Error(ErrorCode::unsupported, dir + "/config.json: model type '" + type + "' is not supported (supported: " +
-                                          known + ")");
+const std::vector<const FamilyDescriptor*>& families() {
+  static const std::vector<const FamilyDescriptor*> kFamilies = {
+      &smolvla_family(),
+  };
+  return kFamilies;
 }
 
 std::vector<std::string> model_families() {
   std::vector<std::string> out;
-  for (const auto& f : kFamilies) out.push_back(f.type);
+  for (const auto* f : families()) out.push_back(f->name);
   return out;
+}
+
+const FamilyDescriptor* find_family(const std::string& name) {
+  for (const auto* f : families())
+    if (f->name == name) return f;
+  return nullptr;
+}
+
+const char* tokenizer_kind_name(TokenizerKind k) {
+  switch (k) {
+    case TokenizerKind::byte_level_bpe: return "byte_level_bpe";
+    case TokenizerKind::sentencepiece: return "sentencepiece";
+  }
+  return "?";
+}
+
+void StageTimings::set(const std::string& stage, double value) {
+  for (auto& [name, v] : ms)
+    if (name == stage) {
+      v = value;
+      return;
+    }
+  ms.emplace_back(stage, value);
+}
+
+double StageTimings::get(const std::string& stage) const {
+  for (const auto& [name, v] : ms)
+    if (name == stage) return v;
+  return 0;
+}
+
+std::optional<std::string> find_camera(const ModelSpec& spec, const std::string& name) {
+  for (const auto& c : spec.cameras)
+    if (c == name || (!spec.camera_prefix.empty() && c == spec.camera_prefix + name)) return c;
+  return std::nullopt;
+}
+
+CheckpointProbe probe_checkpoint(const fs::path& dir) {
+  CheckpointProbe p{dir, Json(nullptr)};
+  if (fs::is_regular_file(dir / "config.json")) p.config = read_json_file((dir / "config.json").string());
+  return p;
+}
+
+const FamilyDescriptor& recognise(const CheckpointProbe& probe) {
+  for (const auto* f : families())
+    if (f->recognises(probe)) return *f;
+  const std::string config_path = (probe.dir / "config.json").string();
+  if (probe.config.is_null())
+    throw Error(ErrorCode::not_found, config_path + ": missing (not a checkpoint directory?)");
+  std::string known;
+  for (const auto* f : families()) known += std::string(known.empty() ? "" : "; ") + f->name + " (" + f->recognition + ")";
+  // What the checkpoint says it is, in the terms the known conventions use.
+  std::string identity = "no \"type\"";
+  if (const auto t = probe.config.find("type"); t != probe.config.end()) identity = "model type " + t->dump();
+  else if (const auto m = probe.config.find("model_type"); m != probe.config.end()) identity = "model_type " + m->dump();
+  throw Error(ErrorCode::unsupported, config_path + ": " + identity + " is not supported; known families: " + known);
+}
+
+const FamilyDescriptor& recognise(const fs::path& dir) { return recognise(probe_checkpoint(dir)); }
+
+LoadedCheckpoint load_checkpoint(const fs::path& dir, const LoadOptions& options) {
+  if (!fs::is_directory(dir)) throw Error(ErrorCode::not_found, dir.string() + ": not a checkpoint directory");
+  CheckpointProbe probe = probe_checkpoint(dir);
+  LoadedCheckpoint out;
+  out.family = &recognise(probe);
+  out.config = std::move(probe.config);
+  out.weight_files = out.family->weight_files(dir);
+  TensorStore weights = out.family->open_weights(dir);
+  out.normalization = out.family->load_normalization(dir, out.config, weights);
+  out.model = out.family->load(dir, out.config, std::move(weights), options);
+  return out;
+}
+
+std::string weights_hash(const fs::path& dir, const std::vector<std::string>& weight_files) {
+  if (weight_files.size() == 1) return "sha256:" + sha256_file_hex((dir / weight_files[0]).string());
+  std::string lines;
+  for (const auto& f : weight_files) lines += sha256_file_hex((dir / f).string()) + "  " + f + "\n";
+  return "sha256:" + sha256_hex(lines);
 }
 
 void seeded_normal(uint64_t seed, float* out, int64_t n) {

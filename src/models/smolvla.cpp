@@ -75,7 +75,7 @@ TokenizerSettings read_tokenizer_settings(const fs::path& dir, const Json& confi
 
 class SmolVLA final : public Model {
  public:
-  SmolVLA(const fs::path& dir, const Json& config, const LoadOptions& options);
+  SmolVLA(const fs::path& dir, const Json& config, TensorStore weights, const LoadOptions& options);
   const ModelSpec& spec() const override { return spec_; }
   ModelOutput predict(const std::vector<ModelInput>& batch) override;
 
@@ -123,13 +123,20 @@ class SmolVLA final : public Model {
   int64_t images_run_ = 0;  // images through the vision tower in this request (for the flop count)
 };
 
-SmolVLA::SmolVLA(const fs::path& dir, const Json& config, const LoadOptions& options) {
+SmolVLA::SmolVLA(const fs::path& dir, const Json& config, TensorStore weights, const LoadOptions& options) {
   const cpu::Precision precision = options.precision;
   spec_.precision = precision;
   be_ = options.backend ? options.backend : backend::make_backend("cpu");
   backend::Backend& be = *be_;
   const std::string where = (dir / "config.json").string();
-  spec_.family = "smolvla";
+  const FamilyDescriptor& family = smolvla_family();
+  spec_.family = family.name;
+  spec_.stages = family.stages;
+  spec_.missing_camera_rule = family.missing_camera_rule;
+  spec_.tokenizer = tokenizer_kind_name(family.tokenizer);
+  spec_.camera_prefix = "observation.images.";
+  spec_.state_key = "observation.state";
+  spec_.action_key = "action";
   if (json_get_or<bool>(config, "adapt_to_pi_aloha", false, where))
     throw Error(ErrorCode::unsupported, where + ": adapt_to_pi_aloha is not supported yet");
   if (json_get_or<bool>(config, "add_image_special_tokens", false, where))
@@ -147,7 +154,10 @@ SmolVLA::SmolVLA(const fs::path& dir, const Json& config, const LoadOptions& opt
     }
   }
   empty_cameras_ = json_get_or<int64_t>(config, "empty_cameras", 0, where);
-  for (int64_t i = 0; i < empty_cameras_; ++i) spec_.cameras.push_back("observation.images.empty_camera_" + std::to_string(i));
+  for (int64_t i = 0; i < empty_cameras_; ++i) {
+    spec_.cameras.push_back("observation.images.empty_camera_" + std::to_string(i));
+    spec_.synthetic_cameras.push_back(spec_.cameras.back());
+  }
   const Json& outputs = json_get<Json>(config, "output_features", where);
   for (auto it = outputs.begin(); it != outputs.end(); ++it) {
     if (json_get<std::string>(*it, "type", where) == "ACTION") {
@@ -202,7 +212,7 @@ SmolVLA::SmolVLA(const fs::path& dir, const Json& config, const LoadOptions& opt
   expert_hidden_ = int64_t(double(text_cfg_.hidden) * width_mult);
 
   // Weights.
-  weights_ = std::make_unique<Weights>(SafeTensorsFile::open((dir / "model.safetensors").string()));
+  weights_ = std::make_unique<Weights>(std::move(weights));
   Weights& w = *weights_;
   const std::string vlm_prefix = "model.vlm_with_expert.vlm.model.";
   const std::string expert_prefix = "model.vlm_with_expert.lm_expert.";
@@ -294,7 +304,7 @@ void SmolVLA::build_prefix(const std::vector<ModelInput>& batch, ModelOutput& ou
     for (int64_t c = 0; c < ncam; ++c) {
       auto it = batch[b].images.find(spec_.cameras[c]);
       if (it != batch[b].images.end()) {
-        vision::preprocess_smolvla(it->second, int(H), int(W), &host_pixels_[(c * B + b) * img_elems]);
+        vision::resize_with_pad_normalized(it->second, int(H), int(W), &host_pixels_[(c * B + b) * img_elems]);
         img_present_[c * B + b] = 1;
         slot_camera[b].push_back(c);
       }
@@ -337,7 +347,7 @@ void SmolVLA::build_prefix(const std::vector<ModelInput>& batch, ModelOutput& ou
       throw Error(ErrorCode::internal, "token id " + std::to_string(id) + " outside the embedding table");
   token_ids_ = be.alloc<int64_t>(B * L);
   be.upload(enc.ids.data(), B * L, token_ids_.at());
-  out.timings.preprocess_ms = ms_since(t0);
+  out.timings.set("preprocess", ms_since(t0));
 
   // Vision tower + connector over runs of up to kVisionGroup present images (camera-major order), so the
   // GEMMs see several images at once while activation memory stays bounded for large batches. Masked fillers
@@ -361,7 +371,7 @@ void SmolVLA::build_prefix(const std::vector<ModelInput>& batch, ModelOutput& ou
     images_run_ += n;
     i += n;
   }
-  out.timings.vision_ms = ms_since(t1);
+  out.timings.set("vision", ms_since(t1));
   if (dumping()) {
     for (int64_t c = 0; c < ncam; ++c) {
       dump("pre.pixels." + spec_.cameras[c], Tensor{DType::f32, {B, 3, H, W}, &host_pixels_[c * B * img_elems], nullptr});
@@ -495,7 +505,7 @@ ModelOutput SmolVLA::predict(const std::vector<ModelInput>& batch) {
 
   const auto t2 = std::chrono::steady_clock::now();
   run_prefix();
-  out.timings.prefix_ms = ms_since(t2);
+  out.timings.set("prefix", ms_since(t2));
 
   const auto t3 = std::chrono::steady_clock::now();
   std::vector<float> noise(std::size_t(B * C * A));
@@ -514,7 +524,7 @@ ModelOutput SmolVLA::predict(const std::vector<ModelInput>& batch) {
   out.steps_used = euler_sample(be, x_t_.at(), v_t_.at(), {B, C, A, spec_.action_dim}, Schedule{1.0, 0.0, spec_.num_steps},
                                 controls, [this](Ptr<const float> x, float time, Ptr<float> v) { denoise_step(x, time, v); },
                                 on_step0);
-  out.timings.denoise_ms = ms_since(t3);
+  out.timings.set("denoise", ms_since(t3));
   // Every item runs until the last one stops: the batch's steps are the most any item used.
   out.flops = flops(images_run_, *std::max_element(out.steps_used.begin(), out.steps_used.end()));
 
@@ -528,8 +538,9 @@ ModelOutput SmolVLA::predict(const std::vector<ModelInput>& batch) {
 
 }  // namespace
 
-std::unique_ptr<Model> load_smolvla(const std::string& checkpoint_dir, const Json& config, const LoadOptions& options) {
-  return std::make_unique<SmolVLA>(fs::path(checkpoint_dir), config, options);
+std::unique_ptr<Model> load_smolvla(const fs::path& checkpoint_dir, const Json& config, TensorStore weights,
+                                    const LoadOptions& options) {
+  return std::make_unique<SmolVLA>(checkpoint_dir, config, std::move(weights), options);
 }
 
 }  // namespace tether::models

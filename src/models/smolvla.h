@@ -2,14 +2,18 @@
 // "action expert" interleaving self- and cross-attention to the prefix K/V, and a flow-matching Euler sampler.
 #pragma once
 
+#include <filesystem>
 #include <memory>
-#include <string>
 
-#include "models/model.h"
+#include "models/family.h"
 
 namespace tether::models {
 
-std::unique_ptr<Model> load_smolvla(const std::string& checkpoint_dir, const Json& policy_config,
-                                    const LoadOptions& options);
+// The family's descriptor (smolvla_family.cpp): lerobot type "smolvla".
+const FamilyDescriptor& smolvla_family();
+
+// The model from a checkpoint directory and its opened weights (smolvla.cpp).
+std::unique_ptr<Model> load_smolvla(const std::filesystem::path& checkpoint_dir, const Json& policy_config,
+                                    TensorStore weights, const LoadOptions& options);
 
 }  // namespace tether::models

@@ -1,33 +1,23 @@
-// Feature normalisation exactly as lerobot's normalizer/unnormalizer processor steps do it, read from the
-// checkpoint's processor pipeline JSON and its stats safetensors.
+// Feature normalisation with lerobot's arithmetic (normalizer / unnormalizer processor steps), applied to the
+// modes and statistics a family read from its checkpoint (models::NormalizationSpec).
 #pragma once
 
 #include <map>
 #include <string>
 #include <vector>
 
-#include "core/json_util.h"
+#include "models/normalization.h"
 
 namespace tether::policy {
 
-enum class NormMode { identity, mean_std, min_max, quantiles, quantile10 };
-const char* norm_mode_name(NormMode m);
-
-struct FeatureNorm {
-  std::string type;  // lerobot FeatureType: STATE, ACTION, VISUAL, ...
-  NormMode mode = NormMode::identity;
-  bool has_stats = false;
-  std::map<std::string, std::vector<float>> stats;  // "mean", "std", "min", "max", "q01", ...
-};
+using models::FeatureNorm;
+using models::norm_mode_name;
+using models::NormMode;
 
 class Normalizer {
  public:
-  // Reads the step named `step_name` ("normalizer_processor" or "unnormalizer_processor") from the pipeline file
-  // `pipeline_json` in `dir`. Without the file or the step, falls back to config.json's normalization_mapping with
-  // no stats. Features whose mode needs stats that are missing are left unchanged, as upstream does; a warning
-  // naming them is appended to `warnings`.
-  static Normalizer load(const std::string& dir, const std::string& pipeline_json, const std::string& step_name,
-                         const Json& policy_config, std::vector<std::string>& warnings);
+  Normalizer() = default;
+  explicit Normalizer(models::NormalizationSpec spec) : features_(std::move(spec.features)), eps_(spec.eps) {}
 
   void normalize(const std::string& key, float* x, int64_t n) const { apply(key, x, n, Direction::normalize); }
   void unnormalize(const std::string& key, float* x, int64_t n) const { apply(key, x, n, Direction::unnormalize); }

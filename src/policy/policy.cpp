@@ -1,18 +1,16 @@
+// Policy: load a checkpoint through its family, normalise, predict, unnormalise (see policy.h).
 #include "policy/policy.h"
 
 #include <algorithm>
 #include <chrono>
 #include <cmath>
-#include <filesystem>
 
 namespace tether::policy {
-
-namespace fs = std::filesystem;
 
 namespace {
 
 // The model-side denoise control of one observation. RTC's leftover goes back to the model's normalised space (the
-// inverse of the output unnormalisation), zero-padded to [chunk, max_action_dim], with lerobot's prefix weights
+// inverse of the output unnormalisation), zero-padded to [chunk, max_action_dim], with the RTC prefix weights
 // (execution horizon capped to the leftover length, as upstream does).
 models::DenoiseControl denoise_control(const Observation& o, const models::ModelSpec& s, const Normalizer& post) {
   auto fail = [](const std::string& message) { throw Error(ErrorCode::invalid_argument, message); };
@@ -50,28 +48,23 @@ models::DenoiseControl denoise_control(const Observation& o, const models::Model
 }  // namespace
 
 std::unique_ptr<Policy> Policy::load(const std::string& checkpoint_dir, const models::LoadOptions& options) {
-  if (!fs::is_directory(checkpoint_dir))
-    throw Error(ErrorCode::not_found, checkpoint_dir + ": not a checkpoint directory");
-  const std::string config_path = (fs::path(checkpoint_dir) / "config.json").string();
-  if (!fs::exists(config_path)) throw Error(ErrorCode::not_found, config_path + ": missing (not a LeRobot checkpoint?)");
-  const Json config = read_json_file(config_path);
+  models::LoadedCheckpoint c = models::load_checkpoint(checkpoint_dir, options);
   auto p = std::unique_ptr<Policy>(new Policy());
   p->dir_ = checkpoint_dir;
-  p->model_ = models::load_model(checkpoint_dir, config, options);
-  std::vector<std::string> post_warnings;
-  p->pre_ = Normalizer::load(checkpoint_dir, "policy_preprocessor.json", "normalizer_processor", config, p->warnings_);
-  p->post_ = Normalizer::load(checkpoint_dir, "policy_postprocessor.json", "unnormalizer_processor", config,
-                              post_warnings);
-  // The pre- and post-processor usually carry the same stats; report each missing feature once.
-  for (const auto& w : post_warnings)
-    if (std::find(p->warnings_.begin(), p->warnings_.end(), w) == p->warnings_.end()) p->warnings_.push_back(w);
+  p->family_ = c.family;
+  p->weight_files_ = std::move(c.weight_files);
+  p->model_ = std::move(c.model);
+  p->pre_ = Normalizer(std::move(c.normalization.input));
+  p->post_ = Normalizer(std::move(c.normalization.output));
+  p->warnings_ = std::move(c.normalization.warnings);
   return p;
 }
 
 Observation synthetic_observation(const models::ModelSpec& spec) {
   Observation obs;
   for (const auto& camera : spec.cameras) {
-    if (camera.find("empty_camera_") != std::string::npos) continue;  // the config's synthetic fillers
+    if (std::find(spec.synthetic_cameras.begin(), spec.synthetic_cameras.end(), camera) != spec.synthetic_cameras.end())
+      continue;  // the model fills these itself
     vision::Image img;
     img.height = spec.image_height > 0 ? int(spec.image_height) : 224;
     img.width = spec.image_width > 0 ? int(spec.image_width) : 224;

@@ -6,6 +6,7 @@
 #include <string>
 #include <vector>
 
+#include "models/family.h"
 #include "models/model.h"
 #include "policy/normalizer.h"
 
@@ -30,8 +31,8 @@ struct Observation {
   std::optional<Rtc> rtc;
 };
 
-// A stand-in observation for warm-ups and benchmarks: a mid-grey frame for every real camera at the model's input
-// size, a zero state, a short instruction.
+// A stand-in observation for warm-ups and benchmarks: a mid-grey frame for every camera a client sends (not the
+// model's synthetic ones) at the model's input size, a zero state, a short instruction.
 Observation synthetic_observation(const models::ModelSpec& spec);
 
 struct ActionChunk {
@@ -50,11 +51,15 @@ struct Prediction {
 
 class Policy {
  public:
+  // Loads the checkpoint through the family that recognises it (models/family.h).
   static std::unique_ptr<Policy> load(const std::string& checkpoint_dir, const models::LoadOptions& options = {});
 
   const models::ModelSpec& spec() const { return model_->spec(); }
+  const models::FamilyDescriptor& family() const { return *family_; }
   const std::string& directory() const { return dir_; }
-  // Things the user should know about the checkpoint (missing stats, ...), one sentence each.
+  // The weight files, relative to directory() (one file, or an index and its shards).
+  const std::vector<std::string>& weight_files() const { return weight_files_; }
+  // Things the user should know about the checkpoint (missing stats, converted legacy stats, ...), one sentence each.
   const std::vector<std::string>& load_warnings() const { return warnings_; }
   const Normalizer& input_normalizer() const { return pre_; }
   const Normalizer& output_normalizer() const { return post_; }
@@ -68,6 +73,8 @@ class Policy {
 
  private:
   std::string dir_;
+  const models::FamilyDescriptor* family_ = nullptr;
+  std::vector<std::string> weight_files_;
   std::unique_ptr<models::Model> model_;
   Normalizer pre_, post_;
   std::vector<std::string> warnings_;

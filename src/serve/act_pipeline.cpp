@@ -299,16 +299,15 @@ ActResponse ActPipeline::respond(Act& a, const RequestContext& ctx, ActTrace& tr
   for (int64_t row = 0; row < a.rows; ++row)
     actions_json.push_back(std::vector<float>(actions.begin() + row * dim, actions.begin() + (row + 1) * dim));
   Json latency = Json::object();
-  std::vector<std::pair<const char*, double>> stages = {{"total", ms_since(ctx.received)}};
+  std::vector<std::pair<std::string, double>> stages = {{"total", ms_since(ctx.received)}};
   const auto& ran = a.ran;
   if (ran) {
-    const double preprocess_ms = a.parse_ms + ran->normalize_ms + ran->timings.preprocess_ms;
-    stages.insert(stages.end(), {{"queue", ran->queue_ms},
-                                 {"preprocess", preprocess_ms},
-                                 {"vision", ran->timings.vision_ms},
-                                 {"prefix", ran->timings.prefix_ms},
-                                 {"denoise", ran->timings.denoise_ms},
-                                 {"postprocess", ran->postprocess_ms}});
+    stages.emplace_back("queue", ran->queue_ms);
+    // The model's stages in its order (ModelSpec::stages); the first also carries parsing and normalisation.
+    const auto& names = engine.spec.stages;
+    for (std::size_t i = 0; i < names.size(); ++i)
+      stages.emplace_back(names[i], ran->timings.get(names[i]) + (i == 0 ? a.parse_ms + ran->normalize_ms : 0.0));
+    stages.emplace_back("postprocess", ran->postprocess_ms);
     if (ran->index_in_batch == 0) metrics_.observe_batch_size(ran->batch_size);
   }
   for (const auto& [name, ms] : stages) {

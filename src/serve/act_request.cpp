@@ -71,10 +71,8 @@ vision::Image decode_field_image(const J& v, const std::string& field) {
 
 }  // namespace
 
-std::optional<std::string> resolve_camera(const std::string& name, const std::vector<std::string>& cameras) {
-  for (const auto& c : cameras)
-    if (c == name || c == "observation.images." + name) return c;
-  return std::nullopt;
+std::optional<std::string> resolve_camera(const std::string& name, const models::ModelSpec& spec) {
+  return models::find_camera(spec, name);
 }
 
 namespace {
@@ -216,7 +214,7 @@ ActRequest parse_act_request(std::string_view body, const models::ModelSpec& spe
     if (!images->is_object()) fail("invalid_field", "images: expected an object {camera: image}, got " + type_name(*images));
     if (images->empty()) fail("missing_field", "images: at least one camera image is required");
     for (auto it = images->begin(); it != images->end(); ++it) {
-      const auto camera = resolve_camera(it.key(), spec.cameras);
+      const auto camera = resolve_camera(it.key(), spec);
       if (!camera) {
         std::string known;
         for (const auto& c : spec.cameras) known += (known.empty() ? "" : ", ") + c;

@@ -35,7 +35,8 @@ inline constexpr int kMaxJsonDepth = 16;
 // unknown_camera, unknown_field, missing_field; the message names the field at fault.
 ActRequest parse_act_request(std::string_view body, const models::ModelSpec& spec);
 
-// "front" -> "observation.images.front" when the model has that camera; nullopt for a camera it does not have.
-std::optional<std::string> resolve_camera(const std::string& name, const std::vector<std::string>& cameras);
+// The camera key `name` stands for (the key, or the key without spec.camera_prefix: "front" ->
+// "observation.images.front"); nullopt for a camera the model does not have.
+std::optional<std::string> resolve_camera(const std::string& name, const models::ModelSpec& spec);
 
 }  // namespace tether::serve

@@ -5,7 +5,6 @@
 #include <filesystem>
 
 #include "backend/cpu/packed_linear.h"
-#include "core/hash.h"
 
 namespace tether::serve {
 
@@ -18,8 +17,7 @@ Engine load_policy_engine(const std::string& checkpoint_dir, const models::LoadO
   e.gemm = cpu::gemm_name(p->spec().precision);
   e.precision = cpu::precision_name(p->spec().precision);
   e.compute = cpu::compute_mode(p->spec().precision);
-  const auto weights = std::filesystem::path(checkpoint_dir) / "model.safetensors";
-  e.model_hash = "sha256:" + sha256_file_hex(weights.string());
+  e.model_hash = models::weights_hash(checkpoint_dir, p->weight_files());
   e.model_name = std::filesystem::path(checkpoint_dir).lexically_normal().filename().string();
   if (e.model_name.empty()) e.model_name = std::filesystem::path(checkpoint_dir).lexically_normal().parent_path().filename().string();
   const std::string state_key = p->spec().state_key;

@@ -13,7 +13,7 @@ namespace tether::serve {
 struct Engine {
   models::ModelSpec spec;
   runtime::PredictFn predict;       // called from the batcher's single worker thread only
-  std::string model_hash;           // "sha256:<hex of model.safetensors>"
+  std::string model_hash;           // models::weights_hash: "sha256:<hex>" of the weights file (or of the shards)
   std::vector<std::string> normalization;  // one line per feature, for /config
   std::vector<std::string> load_warnings;
   std::string model_name;  // the checkpoint directory's name, for traces
@@ -25,7 +25,7 @@ struct Engine {
   std::string compute = "fp32";  // cpu::compute_mode: what the linear layers really ran in
 };
 
-// Loads the checkpoint directory with Policy::load and hashes its weights file.
+// Loads the checkpoint directory with Policy::load and hashes its weights (models::weights_hash).
 Engine load_policy_engine(const std::string& checkpoint_dir, const models::LoadOptions& options = {});
 
 }  // namespace tether::serve

@@ -68,9 +68,14 @@ std::string escape_label(const std::string& value) {
 
 Metrics::Metrics(std::string version, std::string gemm)
     : version_(std::move(version)), gemm_(std::move(gemm)), batch_sizes_(kBatchBounds) {
-  // Every stage is present from the start, so dashboards see zeros rather than missing series.
-  for (const char* s : {"total", "queue", "preprocess", "vision", "prefix", "denoise", "postprocess"})
-    stages_.emplace(s, Histogram(kLatencyBounds));
+  // Every stage is present from the start, so dashboards see zeros rather than missing series; the model's own
+  // stages join once it has loaded (declare_stages).
+  for (const char* s : {"total", "queue", "postprocess"}) stages_.emplace(s, Histogram(kLatencyBounds));
+}
+
+void Metrics::declare_stages(const std::vector<std::string>& stages) {
+  std::lock_guard lock(mu_);
+  for (const auto& s : stages) stages_.emplace(s, Histogram(kLatencyBounds));
 }
 
 void Metrics::count_request(const std::string& endpoint, int status) {

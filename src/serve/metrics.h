@@ -33,8 +33,10 @@ class Metrics {
   Metrics(std::string version, std::string gemm);
 
   void count_request(const std::string& endpoint, int status);
-  // `stage`: total, queue, preprocess, vision, prefix, denoise, postprocess.
+  // `stage`: total, queue, postprocess, or one of the model's stages (ModelSpec::stages).
   void observe_stage(const std::string& stage, double seconds);
+  // The model's stages, so that their series exist (at zero) before the first request.
+  void declare_stages(const std::vector<std::string>& stages);
   void observe_batch_size(int size);
   void set_queue_depth(int depth);
   void set_model_ready(bool ready);

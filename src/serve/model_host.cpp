@@ -48,6 +48,7 @@ bool ModelHost::load() {
     auto b = std::make_unique<runtime::Batcher>(
         runtime::with_injected_faults(e->predict, w.inject_latency_ms, w.inject_failure_file), batch_options_);
     metrics_.set_gemm(e->gemm);
+    metrics_.declare_stages(e->spec.stages);
     register_wedge_metrics(metrics_, wedges_);
     engine_ = std::move(e);
     batcher_ = std::move(b);

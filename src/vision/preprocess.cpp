@@ -1,4 +1,4 @@
-// Bilinear resize and SmolVLA preprocessing, reproducing torch's float32 CPU kernels bit for bit.
+// Bilinear resize and resize-with-pad preprocessing, reproducing torch's float32 CPU kernels bit for bit.
 //
 // What torch computes (aten/src/ATen/native/UpSample.h and cpu/UpSampleKernel.cpp), per axis:
 //   scale = float(in) / float(out)                     (float32 division)
@@ -96,11 +96,12 @@ struct Job {
   int channels, out_h, out_w;   // size of the resized region
   float* out;                   // (channels, dst_h, dst_w)
   int dst_h, dst_w, top, left;  // the region's placement inside `out`
-  bool affine;                  // store y * 2 - 1 instead of y
+  bool affine;                  // store y * scale + offset instead of y
   BilinearKernel kernel;
+  float scale = 1.0f, offset = 0.0f;
 };
 
-inline float finish(float y, bool affine) { return affine ? y * 2.0f - 1.0f : y; }
+inline float finish(float y, const Job& j) { return j.affine ? y * j.scale + j.offset : y; }
 
 template <class Src>
 [[gnu::always_inline]] inline void run_separable(const Src& src, const Job& j) {
@@ -117,7 +118,7 @@ template <class Src>
         const float w0 = k.l0[ox], w1 = k.l1[ox];
         const float t0 = std::fma(Src::at(row0, a), w0, Src::at(row0, b) * w1);
         const float t1 = std::fma(Src::at(row1, a), w0, Src::at(row1, b) * w1);
-        o[ox] = finish(std::fma(t0, h0, t1 * h1), j.affine);
+        o[ox] = finish(std::fma(t0, h0, t1 * h1), j);
       }
     }
   }
@@ -140,7 +141,7 @@ template <class Src>
         float y = std::fma(Src::at(row0, a), w00, Src::at(row0, b) * w01);
         y = std::fma(Src::at(row1, a), w10, y);
         y = std::fma(Src::at(row1, b), w11, y);
-        o[ox] = finish(y, j.affine);
+        o[ox] = finish(y, j);
       }
     }
   }
@@ -303,30 +304,34 @@ void resize_with_pad(const float* in, int channels, int in_h, int in_w, int out_
   fill_padding(out, channels, out_h, out_w, top, left, pad_value);
 }
 
-void preprocess_smolvla(const Image& img, int out_h, int out_w, float* out, TorchThreads threads) {
+void resize_with_pad_normalized(const Image& img, int out_h, int out_w, float* out, TorchThreads threads,
+                                PixelRange range, float pad_value) {
   check_image(img);
   check_ptr(out, "output");
   check_size("preprocess target", out_h, out_w);
+  const float scale = range.hi - range.lo, offset = range.lo;
   const int in_h = img.height, in_w = img.width;
   if (in_h == out_h && in_w == out_w) {
     const int64_t n = int64_t(in_h) * in_w;
     const uint8_t* p = img.rgb.data();
     for (int c = 0; c < 3; ++c)
-      for (int64_t i = 0; i < n; ++i) out[c * n + i] = kLut.v[p[i * 3 + c]] * 2.0f - 1.0f;
+      for (int64_t i = 0; i < n; ++i) out[c * n + i] = kLut.v[p[i * 3 + c]] * scale + offset;
     return;
   }
   const ResizedSize r = resize_with_pad_size(in_h, in_w, out_h, out_w);
   const int top = std::max(0, out_h - r.height), left = std::max(0, out_w - r.width);
   t_rows.build(in_h, r.height);
   t_cols.build(in_w, r.width);
-  const Job job{3,       r.height,
-                r.width, out,
-                out_h,   out_w,
-                top,     left,
-                true,    torch_bilinear_kernel(3, in_h, in_w, r.height, r.width, threads)};
+  Job job{3,       r.height,
+          r.width, out,
+          out_h,   out_w,
+          top,     left,
+          true,    torch_bilinear_kernel(3, in_h, in_w, r.height, r.width, threads)};
+  job.scale = scale;
+  job.offset = offset;
   run_dispatch(InterleavedU8{img.rgb.data(), in_w}, job);
-  // Padding is 0 before the affine map, hence exactly -1 after it.
-  fill_padding(out, 3, out_h, out_w, top, left, -1.0f);
+  // Padding goes through the same map as the pixels (0 -> -1 for [-1, 1]).
+  fill_padding(out, 3, out_h, out_w, top, left, pad_value * scale + offset);
 }
 
 }  // namespace tether::vision

@@ -34,16 +34,22 @@ struct ResizedSize {
 };
 ResizedSize resize_with_pad_size(int in_h, int in_w, int out_h, int out_w);
 
-// lerobot policies/common/vla_utils.py::resize_with_pad (the SmolVLA variant): aspect-preserving
+// lerobot policies/common/vla_utils.py::resize_with_pad (SmolVLA's variant): aspect-preserving
 // bilinear resize, then padding with `pad_value` on the LEFT and TOP. Same size: copied unchanged.
 void resize_with_pad(const float* in, int channels, int in_h, int in_w, int out_h, int out_w,
                      float pad_value, float* out, TorchThreads threads = TorchThreads::many);
 
-// SmolVLA's prepare_images for one camera: x / 255, resize_with_pad(pad_value=0) to (out_h, out_w),
-// then x * 2 - 1, so padded pixels end as -1. `out` holds 3 * out_h * out_w floats (CHW).
+// Where [0, 1] pixels land after resizing: y * (hi - lo) + lo. SmolVLA (and pi0) use [-1, 1].
+struct PixelRange {
+  float lo = -1.0f, hi = 1.0f;
+};
+
+// One camera as the lerobot VLA policies prepare it: x / 255, resize_with_pad(pad_value) to (out_h, out_w), then
+// mapped to `range`, so with the defaults padded pixels end as -1. `out` holds 3 * out_h * out_w floats (CHW).
 // Note the SmolVLA config stores resize_imgs_with_padding as (width, height).
-void preprocess_smolvla(const Image& img, int out_h, int out_w, float* out,
-                        TorchThreads threads = TorchThreads::many);
+void resize_with_pad_normalized(const Image& img, int out_h, int out_w, float* out,
+                                TorchThreads threads = TorchThreads::many, PixelRange range = {},
+                                float pad_value = 0.0f);
 
 namespace detail {
 // Tests only: run the portable kernel build (libm fma) even on a CPU with FMA instructions, to

@@ -6,7 +6,7 @@
 #include <filesystem>
 
 #include "core/json_util.h"
-#include "models/model.h"
+#include "models/family.h"
 #include "vision/image.h"
 
 using namespace tether;
@@ -16,10 +16,9 @@ namespace {
 
 void expect_reported_equals_counted(const std::string& fixture, float adaptive_threshold) {
   const fs::path dir = fs::path(TETHER_FIXTURES_DIR) / "smolvla" / fixture / "checkpoint";
-  const Json config = read_json_file((dir / "config.json").string());
   models::LoadOptions options;
   options.backend = backend::make_backend("cpu");
-  auto model = models::load_model(dir.string(), config, options);
+  auto model = models::load_checkpoint(dir, options).model;
   const models::ModelSpec& spec = model->spec();
   models::ModelInput in;
   const vision::Image image =

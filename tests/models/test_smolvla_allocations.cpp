@@ -13,7 +13,7 @@
 #include <fstream>
 #include <new>
 
-#include "models/model.h"
+#include "models/family.h"
 #include "vision/image.h"
 
 // The replacement operator new/delete pair below uses malloc/free; GCC cannot see that they match.
@@ -68,7 +68,7 @@ fs::path checkpoint_with_steps(int steps) {
 
 long allocations_of_warm_predict(int steps) {
   const fs::path dir = checkpoint_with_steps(steps);
-  auto model = models::load_model(dir.string(), read_json_file((dir / "config.json").string()));
+  auto model = models::load_checkpoint(dir).model;
   models::ModelInput in;
   in.images["observation.images.camera1"] =
       vision::load_image((fs::path(TETHER_FIXTURES_DIR) / "smolvla/cam1_stats/inputs/camera1_0.png").string());

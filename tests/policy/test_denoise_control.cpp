@@ -164,10 +164,7 @@ TEST(RealTimeChunking, ValidatesTheRequestFields) {
 TEST(RealTimeChunking, LeftoverGoesBackToTheModelsOwnOutput) {
   // The target is the inverse of the output unnormalisation: a chunk fed back as its own leftover is the model's
   // normalised output again.
-  std::vector<std::string> warnings;
-  const Json config = read_json_file(kDemo + "/config.json");
-  const policy::Normalizer post =
-      policy::Normalizer::load(kDemo, "policy_postprocessor.json", "unnormalizer_processor", config, warnings);
+  const policy::Normalizer& post = demo().output_normalizer();
   std::vector<float> normalized;
   demo().set_debug_hook([&](const std::string& name, const Tensor& t) {
     if (name == "out.actions_normalized") normalized = t.to_f32();

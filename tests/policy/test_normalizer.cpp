@@ -1,4 +1,4 @@
-// Normaliser: lerobot's formulas per mode, the degenerate-range guard, and missing stats handled as upstream.
+// Normaliser: lerobot's processor files read (models/lerobot), its formulas per mode, the degenerate-range guard, and missing stats handled as upstream.
 #include <gtest/gtest.h>
 
 #include <filesystem>
@@ -6,6 +6,7 @@
 #include <unistd.h>
 
 #include "core/safetensors.h"
+#include "models/lerobot/checkpoint.h"
 #include "policy/normalizer.h"
 
 using namespace tether;
@@ -39,7 +40,7 @@ TEST(Normalizer, MeanStdForwardAndInverse) {
                              {{"observation.state.mean", {1.f, -2.f}}, {"observation.state.std", {2.f, 0.5f}},
                               {"action.mean", {0.f, 10.f}}, {"action.std", {1.f, 4.f}}});
   std::vector<std::string> warnings;
-  Normalizer n = Normalizer::load(dir.string(), "policy_preprocessor.json", "normalizer_processor", config(), warnings);
+  Normalizer n = Normalizer(models::lerobot::read_pipeline_normalization(dir.string(), "policy_preprocessor.json", "normalizer_processor", config(), warnings));
   EXPECT_TRUE(warnings.empty());
   std::vector<float> s = {3.f, -1.f, 1.f, -2.f};  // two rows
   n.normalize("observation.state", s.data(), 4);
@@ -55,7 +56,7 @@ TEST(Normalizer, MeanStdForwardAndInverse) {
 TEST(Normalizer, MinMaxWithDegenerateRange) {
   auto dir = make_checkpoint("minmax", "MIN_MAX", {{"observation.state.min", {0.f, 5.f}}, {"observation.state.max", {10.f, 5.f}}});
   std::vector<std::string> warnings;
-  Normalizer n = Normalizer::load(dir.string(), "policy_preprocessor.json", "normalizer_processor", config(), warnings);
+  Normalizer n = Normalizer(models::lerobot::read_pipeline_normalization(dir.string(), "policy_preprocessor.json", "normalizer_processor", config(), warnings));
   std::vector<float> s = {5.f, 5.f};
   n.normalize("observation.state", s.data(), 2);
   EXPECT_FLOAT_EQ(s[0], 0.f);
@@ -73,7 +74,7 @@ TEST(Normalizer, MinMaxWithDegenerateRange) {
 TEST(Normalizer, NoStatsIsIdentityWithWarnings) {
   auto dir = make_checkpoint("nostats", "MEAN_STD", {});
   std::vector<std::string> warnings;
-  Normalizer n = Normalizer::load(dir.string(), "policy_preprocessor.json", "normalizer_processor", config(), warnings);
+  Normalizer n = Normalizer(models::lerobot::read_pipeline_normalization(dir.string(), "policy_preprocessor.json", "normalizer_processor", config(), warnings));
   EXPECT_EQ(warnings.size(), 2u);
   std::vector<float> s = {1.5f, -3.f};
   n.normalize("observation.state", s.data(), 2);
@@ -83,7 +84,7 @@ TEST(Normalizer, NoStatsIsIdentityWithWarnings) {
 TEST(Normalizer, QuantilesAndWidthMismatch) {
   auto dir = make_checkpoint("quant", "QUANTILES", {{"observation.state.q01", {-1.f, 0.f}}, {"observation.state.q99", {1.f, 4.f}}});
   std::vector<std::string> warnings;
-  Normalizer n = Normalizer::load(dir.string(), "policy_preprocessor.json", "normalizer_processor", config(), warnings);
+  Normalizer n = Normalizer(models::lerobot::read_pipeline_normalization(dir.string(), "policy_preprocessor.json", "normalizer_processor", config(), warnings));
   std::vector<float> s = {0.f, 1.f};
   n.normalize("observation.state", s.data(), 2);
   EXPECT_FLOAT_EQ(s[0], 0.f);
@@ -97,5 +98,5 @@ TEST(Normalizer, QuantilesAndWidthMismatch) {
 TEST(Normalizer, UnknownModeIsRejected) {
   auto dir = make_checkpoint("badmode", "ZSCORE_PLUS", {});
   std::vector<std::string> warnings;
-  EXPECT_THROW(Normalizer::load(dir.string(), "policy_preprocessor.json", "normalizer_processor", config(), warnings), Error);
+  EXPECT_THROW(Normalizer(models::lerobot::read_pipeline_normalization(dir.string(), "policy_preprocessor.json", "normalizer_processor", config(), warnings)), Error);
 }

@@ -15,6 +15,7 @@ models::ModelSpec spec() {
   models::ModelSpec s;
   s.family = "smolvla";
   s.cameras = {"observation.images.front", "observation.images.wrist"};
+  s.camera_prefix = "observation.images.";
   s.state_dim = 3;
   s.action_dim = 3;
   s.chunk_size = 4;
@@ -230,7 +231,7 @@ TEST(ActRequest, UnknownCamera) {
 }
 
 TEST(ActRequest, ResolvesCameraNames) {
-  const auto cams = spec().cameras;
+  const auto cams = spec();
   EXPECT_EQ(resolve_camera("front", cams), "observation.images.front");
   EXPECT_EQ(resolve_camera("observation.images.wrist", cams), "observation.images.wrist");
   EXPECT_FALSE(resolve_camera("images.front", cams).has_value());

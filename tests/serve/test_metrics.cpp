@@ -27,6 +27,7 @@ TEST(Histogram, BucketsAreUpperInclusive) {
 
 TEST(Metrics, RendersTheContractSeries) {
   Metrics m("0.1.0", "oneDNN 2.6");
+  m.declare_stages({"preprocess", "vision", "prefix", "denoise"});  // the model's, once it has loaded
   m.count_request("/act", 200);
   m.count_request("/act", 200);
   m.count_request("/act", 503);

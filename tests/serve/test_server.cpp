@@ -41,6 +41,8 @@ struct FakeEngine {
     Engine e;
     e.spec.family = "fake";
     e.spec.cameras = {"observation.images.front"};
+    e.spec.camera_prefix = "observation.images.";
+    e.spec.stages = {"preprocess", "vision", "prefix", "denoise"};
     e.spec.state_dim = 2;
     e.spec.action_dim = 2;
     e.spec.chunk_size = 3;

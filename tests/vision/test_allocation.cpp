@@ -1,4 +1,4 @@
-// preprocess_smolvla runs per request: once a thread has warmed up for a size, it must not
+// resize_with_pad_normalized runs per request: once a thread has warmed up for a size, it must not
 // allocate. Counted by replacing the global operator new in this test binary (skipped under ASan,
 // which supplies its own).
 #include <gtest/gtest.h>
@@ -28,11 +28,11 @@ TEST(VisionAllocation, PreprocessIsAllocationFreeOnceWarm) {
   using namespace tether::vision;
   const Image img = load_image(test::fixture("images/camera_240x320.jpg"));
   std::vector<float> out(3 * 512 * 512), small(3 * 64 * 96);
-  preprocess_smolvla(img, 512, 512, out.data());  // warm-up: per-thread index tables grow once
+  resize_with_pad_normalized(img, 512, 512, out.data());  // warm-up: per-thread index tables grow once
   const long before = g_allocations.load();
   for (int i = 0; i < 5; ++i) {
-    preprocess_smolvla(img, 512, 512, out.data());
-    preprocess_smolvla(img, 64, 96, small.data(), TorchThreads::one);  // smaller: reuses the tables
+    resize_with_pad_normalized(img, 512, 512, out.data());
+    resize_with_pad_normalized(img, 64, 96, small.data(), TorchThreads::one);  // smaller: reuses the tables
   }
   EXPECT_EQ(g_allocations.load() - before, 0);
   // The counter is live: a plain heap allocation is seen.

@@ -49,7 +49,7 @@ TEST(VisionPreprocess, SmolvlaMatchesLerobotBitExactly) {
       const Tensor want = f.get(f.contains(key) ? key : "preprocess/" + name + "/threads_many");
       ASSERT_EQ(want.shape, (Shape{3, out_h, out_w})) << key;
       std::vector<float> got(want.numel(), 42.0f);  // poison: every element must be written
-      preprocess_smolvla(img, out_h, out_w, got.data(), threads);
+      resize_with_pad_normalized(img, out_h, out_w, got.data(), threads);
       const Diff d = compare(got.data(), f32_values(want).data(), want.numel());
       std::printf("  %-28s %4dx%-4d -> %dx%d threads=%-4s max|diff| %.3g (%lld differ)\n",
                   name.c_str(), img.height, img.width, out_h, out_w, mode, d.max_abs,
@@ -64,9 +64,9 @@ TEST(VisionPreprocess, PortableKernelsGiveTheSameBits) {
   const Image img = load_image(fixture("images/camera_240x320.jpg"));
   for (const TorchThreads threads : {TorchThreads::many, TorchThreads::one}) {
     std::vector<float> fast(3 * 200 * 200), portable(3 * 200 * 200);
-    preprocess_smolvla(img, 200, 200, fast.data(), threads);
+    resize_with_pad_normalized(img, 200, 200, fast.data(), threads);
     detail::force_portable_kernels(true);
-    preprocess_smolvla(img, 200, 200, portable.data(), threads);
+    resize_with_pad_normalized(img, 200, 200, portable.data(), threads);
     detail::force_portable_kernels(false);
     const Diff d = compare(portable.data(), fast.data(), int64_t(fast.size()));
     EXPECT_EQ(d.mismatched, 0) << "max|diff| " << d.max_abs;
@@ -83,7 +83,7 @@ TEST(VisionPreprocess, SidesThatWouldVanishAreRefusedLikeTorch) {
     img.rgb.assign(std::size_t(img.height) * img.width * 3, 7);
     std::vector<float> out(3 * int(e["out"][0]) * int(e["out"][1]));
     try {
-      preprocess_smolvla(img, e["out"][0], e["out"][1], out.data());
+      resize_with_pad_normalized(img, e["out"][0], e["out"][1], out.data());
       ADD_FAILURE() << e["name"] << " was accepted; torch said: " << e["torch_error"];
     } catch (const Error& err) {
       EXPECT_EQ(err.code(), ErrorCode::invalid_argument);
@@ -101,7 +101,7 @@ TEST(VisionPreprocess, BuildingBlocksComposeToTheSameResult) {
   EXPECT_EQ(chw[img.height * img.width], float(img.rgb[1]) / 255.0f);
   resize_with_pad(chw.data(), 3, img.height, img.width, oh, ow, 0.0f, padded.data());
   for (float& v : padded) v = v * 2.0f - 1.0f;
-  preprocess_smolvla(img, oh, ow, fused.data());
+  resize_with_pad_normalized(img, oh, ow, fused.data());
   const Diff d = compare(fused.data(), padded.data(), int64_t(fused.size()));
   EXPECT_EQ(d.mismatched, 0) << "max|diff| " << d.max_abs;
   // 240x320 into 100x150: ratio 2.4 -> 100x133, so 17 padded columns on the left at exactly -1.
@@ -116,12 +116,12 @@ TEST(VisionPreprocess, InvalidImagesThrow) {
   bad.width = 4;
   bad.rgb.resize(10);  // not 4x4x3
   std::vector<float> out(3 * 8 * 8);
-  EXPECT_THROW(preprocess_smolvla(bad, 8, 8, out.data()), Error);
+  EXPECT_THROW(resize_with_pad_normalized(bad, 8, 8, out.data()), Error);
   Image empty;
-  EXPECT_THROW(preprocess_smolvla(empty, 8, 8, out.data()), Error);
+  EXPECT_THROW(resize_with_pad_normalized(empty, 8, 8, out.data()), Error);
   Image ok;
   ok.height = ok.width = 2;
   ok.rgb.assign(12, 1);
-  EXPECT_THROW(preprocess_smolvla(ok, 0, 8, out.data()), Error);
-  EXPECT_THROW(preprocess_smolvla(ok, 8, 8, nullptr), Error);
+  EXPECT_THROW(resize_with_pad_normalized(ok, 0, 8, out.data()), Error);
+  EXPECT_THROW(resize_with_pad_normalized(ok, 8, 8, nullptr), Error);
 }

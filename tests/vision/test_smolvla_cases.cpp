@@ -1,5 +1,5 @@
 // Cross-check against the SmolVLA oracle fixtures (tests/fixtures/smolvla/<case>/): the camera
-// files fed to the real upstream policy must decode to its input pixels, and preprocess_smolvla
+// files fed to the real upstream policy must decode to its input pixels, and resize_with_pad_normalized
 // must reproduce what the policy's own prepare_images produced ("pre.pixels.<camera>").
 #include <gtest/gtest.h>
 
@@ -44,7 +44,7 @@ TEST(VisionSmolvlaOracle, CameraFilesDecodeAndPreprocessLikeThePolicy) {
         const int64_t m = 3LL * out_h * out_w;
         ASSERT_EQ(pixels_out.numel(), m * int64_t(names.size()));
         std::vector<float> got(m);
-        preprocess_smolvla(img, out_h, out_w, got.data());
+        resize_with_pad_normalized(img, out_h, out_w, got.data());
         const Diff d = compare(got.data(), want.data() + b * m, m);
         std::printf("  %-32s %-28s %3dx%-3d -> %dx%d max|diff| %.3g\n", case_name.c_str(),
                     camera.c_str(), img.height, img.width, out_h, out_w, d.max_abs);

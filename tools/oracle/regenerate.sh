@@ -13,6 +13,8 @@ for gen in tokenizer_fixtures.py vision_fixtures.py; do
 done
 echo "== smolvla fixtures"
 "$here/run.sh" "$here/smolvla_oracle.py" fixtures --out "$root/tests/fixtures/smolvla"
+echo "== legacy (pre-0.4 layout) fixture, compared against upstream's migrated run"
+"$here/run.sh" "$here/legacy_oracle.py" --out "$root/tests/fixtures/smolvla"
 echo "== tokenizer Unicode coverage (reads the tokenizer fixtures and the smolvla cam1_stats checkpoint's vlm/)"
 "$here/run.sh" "$here/unicode_fixtures.py"
 echo "== real-time chunking fixture (reads the smolvla cam1_stats case)"

@@ -718,6 +718,15 @@ def run_case(name: str, spec: dict, out_root: Path, tiny_tok: Tokenizer) -> Path
         state[:, -1] = st["min"][-1]  # the degenerate dim sits exactly on its single dataset value
     noise = torch.from_numpy(gen.standard_normal((B, cfg.chunk_size, cfg.max_action_dim)).astype(np.float32))
 
+    record_oracle(case_dir, ckpt, images, files, state, noise, spec, generator="tools/oracle/smolvla_oracle.py fixtures")
+    return case_dir
+
+
+def record_oracle(
+    case_dir: Path, ckpt: Path, images: dict, files: dict, state: np.ndarray, noise: torch.Tensor, spec: dict, *,
+    generator: str, extra_meta: dict | None = None,
+) -> None:
+    """Runs upstream on `ckpt` and writes `case_dir/oracle.safetensors`: inputs, intermediates, outputs."""
     cfg_loaded, policy, pre, processed, probes, actions_norm, actions = run_upstream(
         ckpt, images, state, spec["instructions"], noise
     )
@@ -787,12 +796,12 @@ def run_case(name: str, spec: dict, out_root: Path, tiny_tok: Tokenizer) -> Path
                 "resize_imgs_with_padding": list(cfg_loaded.resize_imgs_with_padding),
             }
         ),
-        "generator": "tools/oracle/smolvla_oracle.py fixtures",
+        "generator": generator,
+        **(extra_meta or {}),
     }
     write_safetensors(case_dir / "oracle.safetensors", t, meta)
     check = safetensors.safe_open(str(case_dir / "oracle.safetensors"), "pt")
     assert set(check.keys()) == set(t) and all(torch.equal(check.get_tensor(k), t[k]) for k in t)
-    return case_dir
 
 
 def cmd_fixtures(args) -> None:

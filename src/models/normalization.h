@@ -1,0 +1,40 @@
+// Feature normalisation as data: per feature its kind, mode and statistics, as a family reads them from its
+// checkpoint. The arithmetic that applies them is policy::Normalizer's.
+#pragma once
+
+#include <map>
+#include <optional>
+#include <string>
+#include <vector>
+
+namespace tether::models {
+
+enum class NormMode { identity, mean_std, min_max, quantiles, quantile10 };
+const char* norm_mode_name(NormMode m);                     // "MEAN_STD", ...
+std::optional<NormMode> parse_norm_mode(const std::string& name);
+std::vector<std::string> required_stats(NormMode m);        // {"mean", "std"}, ...
+
+struct FeatureNorm {
+  std::string type;  // the feature kind as the checkpoint names it: STATE, ACTION, VISUAL, ...
+  NormMode mode = NormMode::identity;
+  bool has_stats = false;                           // every statistic `mode` needs is present
+  std::map<std::string, std::vector<float>> stats;  // "mean", "std", "min", "max", "q01", ...
+};
+
+struct NormalizationSpec {
+  std::map<std::string, FeatureNorm> features;  // feature key -> how it is (un)normalised
+  float eps = 1e-8f;
+};
+
+// What a family read: how inputs are normalised and outputs unnormalised, plus sentences for the user.
+struct Normalization {
+  NormalizationSpec input, output;
+  std::vector<std::string> warnings;  // missing statistics, converted legacy statistics, ...
+};
+
+// Sets f.has_stats from f.stats and appends a warning for `key` when its mode needs statistics that are absent
+// (the values then pass through unchanged, as lerobot does); `where` names the file in errors.
+void finish_feature(const std::string& key, FeatureNorm& f, const std::string& where,
+                    std::vector<std::string>& warnings);
+
+}  // namespace tether::models
