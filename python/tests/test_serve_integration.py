@@ -229,6 +229,7 @@ def two_camera_server(tmp_path_factory):
 def test_missing_camera_runs_with_a_warning(two_camera_server):
     cfg = json.loads(request(two_camera_server.port, "GET", "/config")[2])
     assert cfg["cameras"] == [CAMERA, "observation.images.wrist"]
+    assert cfg["stages"] == ["preprocess", "vision", "prefix", "denoise"] and cfg["missing_camera_rule"]
     data = ok_json(post_act(two_camera_server, act_body(image=_UNSET, images={"front": SAMPLE_B64})))
     check_actions(data)
     assert len(data["warnings"]) == 1 and "wrist" in data["warnings"][0], data["warnings"]

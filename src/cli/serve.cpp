@@ -108,11 +108,11 @@ void add_serve_flags(CLI::App* sub, ServeFlags& f) {
   sub->add_option("--inject-failure-file", w.inject_failure_file,
                   "While this file exists every forward pass fails (rehearse the breaker and fallback)")
       ->group(wedges);
-  sub->add_flag("--rtc", w.rtc, "Accept real-time chunking inputs (rtc.prev_actions, rtc.inference_delay)")
+  sub->add_flag("--rtc", w.sampler.rtc, "Accept real-time chunking inputs (rtc.prev_actions, rtc.inference_delay)")
       ->group(wedges);
-  sub->add_option("--rtc-execution-horizon", w.rtc_execution_horizon, "RTC: steps of the leftover that guide")
+  sub->add_option("--rtc-execution-horizon", w.sampler.rtc_execution_horizon, "RTC: steps of the leftover that guide")
       ->group(wedges)->capture_default_str()->check(CLI::Range(1, 100000));
-  sub->add_option("--rtc-max-guidance-weight", w.rtc_max_guidance_weight, "RTC: cap on the guidance weight")
+  sub->add_option("--rtc-max-guidance-weight", w.sampler.rtc_max_guidance_weight, "RTC: cap on the guidance weight")
       ->group(wedges)->capture_default_str()->check(CLI::Range(0.0, 1e6));
   sub->add_option("--rtc-schedule", f.rtc_schedule, "RTC prefix weights: linear, exp, ones, zeros")
       ->group(wedges)->capture_default_str()->check(CLI::IsMember({"linear", "exp", "ones", "zeros"}));
@@ -149,7 +149,7 @@ runtime::WedgeOptions wedge_options(const ServeFlags& f, const std::string& chec
   if (!f.safety_config.empty()) w.safety = policy::load_safety_config(f.safety_config);
   // --adaptive-threshold on its own also turns the wedge on.
   const bool adaptive = f.adaptive_steps || f.adaptive_threshold >= 0;
-  w.adaptive_threshold = !adaptive ? 0.0f : f.adaptive_threshold >= 0 ? f.adaptive_threshold : kDefaultAdaptiveThreshold;
+  w.sampler.adaptive_threshold = !adaptive ? 0.0f : f.adaptive_threshold >= 0 ? f.adaptive_threshold : kDefaultAdaptiveThreshold;
   if ((w.similarity_threshold > 0) != (w.max_similar_skips > 0))
     throw Error(ErrorCode::invalid_argument,
                 "--action-similarity-threshold and --max-similar-skips work together: give both (> 0)");
@@ -159,7 +159,7 @@ runtime::WedgeOptions wedge_options(const ServeFlags& f, const std::string& chec
     if (!f.fallback_api_key_file.empty()) w.fallback_api_key = read_key_file(f.fallback_api_key_file, "--fallback-api-key-file");
     else if (const char* env = std::getenv("TETHER_FALLBACK_API_KEY")) w.fallback_api_key = env;
   }
-  w.rtc_schedule = models::parse_rtc_schedule(f.rtc_schedule, "--rtc-schedule");
+  w.sampler.rtc_schedule = models::parse_rtc_schedule(f.rtc_schedule, "--rtc-schedule");
   if (!f.record_dir.empty()) {
     runtime::TraceOptions t;
     t.dir = f.record_dir;

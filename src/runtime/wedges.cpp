@@ -141,7 +141,7 @@ Json Wedges::response_fields(const WedgeReport& r) const {
     out["guard_violations"] = std::move(v);
   }
   if (opts_.deadline_ms > 0) out["deadline_exceeded"] = r.deadline_exceeded;
-  if (opts_.adaptive_threshold > 0) out["denoise_steps_used"] = r.denoise_steps_used;
+  if (opts_.sampler.adaptive_threshold > 0) out["denoise_steps_used"] = r.denoise_steps_used;
   if (skip_enabled()) {
     out["action_skipped"] = r.skipped;
     out["similar_skips"] = r.similar_skips;
@@ -155,7 +155,7 @@ Json Wedges::response_fields(const WedgeReport& r) const {
   if (breaker_.enabled()) out["circuit_state"] = circuit_state_name(breaker_.state());
   if (opts_.inject_latency_ms > 0) out["injected_latency_ms"] = opts_.inject_latency_ms;
   if (!opts_.inject_failure_file.empty()) out["inject_failure_file"] = opts_.inject_failure_file;
-  if (opts_.rtc) out["rtc_applied"] = r.rtc_applied;
+  if (opts_.sampler.rtc) out["rtc_applied"] = r.rtc_applied;
   if (r.source == ActionSource::cache || r.source == ActionSource::last_good) out["advanced_steps"] = r.advanced_steps;
   if (!r.inference_error.empty()) out["inference_error"] = r.inference_error;
   if (!joints_.empty() && opts_.embodiment) out["joint_names"] = joints_;
@@ -174,7 +174,7 @@ Json Wedges::config_json() const {
   }
   if (guard_) w["audit_log"] = opts_.audit_log;
   w["deadline_ms"] = opts_.deadline_ms > 0 ? Json(opts_.deadline_ms) : Json(nullptr);
-  w["adaptive_threshold"] = opts_.adaptive_threshold > 0 ? Json(opts_.adaptive_threshold) : Json(nullptr);
+  w["adaptive_threshold"] = opts_.sampler.adaptive_threshold > 0 ? Json(opts_.sampler.adaptive_threshold) : Json(nullptr);
   w["similarity"] = skip_enabled() ? Json{{"threshold", opts_.similarity_threshold}, {"max_skips", opts_.max_similar_skips}}
                                    : Json(nullptr);
   w["circuit_breaker"] = breaker_.enabled() ? Json{{"max_consecutive_crashes", opts_.max_consecutive_crashes},
@@ -185,8 +185,8 @@ Json Wedges::config_json() const {
                                                             {"timeout_ms", opts_.fallback_timeout_ms}};
   w["inject_latency_ms"] = opts_.inject_latency_ms;
   w["inject_failure_file"] = opts_.inject_failure_file.empty() ? Json(nullptr) : Json(opts_.inject_failure_file);
-  w["rtc"] = opts_.rtc ? Json{{"execution_horizon", opts_.rtc_execution_horizon},
-                              {"max_guidance_weight", opts_.rtc_max_guidance_weight}}
+  w["rtc"] = opts_.sampler.rtc ? Json{{"execution_horizon", opts_.sampler.rtc_execution_horizon},
+                              {"max_guidance_weight", opts_.sampler.rtc_max_guidance_weight}}
                        : Json(nullptr);
   w["record"] = opts_.record ? Json(opts_.record->dir) : Json(nullptr);
   return w;

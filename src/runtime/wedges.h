@@ -34,7 +34,6 @@ struct WedgeOptions {
   double control_rate_hz = 0;  // 0: the safety config's, else the embodiment's, else kDefaultControlRateHz
 
   double deadline_ms = 0;  // 0: off
-  float adaptive_threshold = 0;
   double similarity_threshold = 0;  // with max_similar_skips > 0
   int max_similar_skips = 0;
   int max_consecutive_crashes = 0;  // 0: no circuit breaker
@@ -45,10 +44,7 @@ struct WedgeOptions {
   double inject_latency_ms = 0;
   std::string inject_failure_file;  // while this file exists every forward pass throws (rehearsing failures)
 
-  bool rtc = false;
-  int rtc_execution_horizon = 10;
-  float rtc_max_guidance_weight = 10;
-  models::RtcSchedule rtc_schedule = models::RtcSchedule::linear;
+  models::SamplerOptions sampler;  // adaptive steps and RTC: the sampler block's own options, passed through
 
   std::optional<TraceOptions> record;  // --record DIR
   bool record_images_full = false;

@@ -157,7 +157,7 @@ ActPipeline::Act ActPipeline::parse(std::string_view body, const RequestContext&
   trace.has_episode = a.parsed.episode_id.has_value();
   trace.episode_id = a.parsed.episode_id.value_or("");
   if (wedges.recorder()) trace.inputs = trace_inputs(obs, w.record_images_full);
-  if (a.parsed.rtc && !w.rtc)
+  if (a.parsed.rtc && !w.sampler.rtc)
     throw HttpError(400, "invalid_field", "rtc: this server runs without --rtc (real-time chunking is off)");
   a.parse_ms = ms_since(t_parse);
 
@@ -203,14 +203,14 @@ void ActPipeline::try_skip(Act& a) {
 net::awaitable<ActPipeline::Inference> ActPipeline::infer(Act& a, const RequestContext& ctx) {
   const auto& w = opts_.wedges;
   policy::Observation& obs = a.parsed.observation;
-  obs.adaptive_threshold = w.adaptive_threshold;
+  obs.adaptive_threshold = w.sampler.adaptive_threshold;
   if (a.parsed.rtc) {
     policy::Observation::Rtc rtc;
     rtc.prev_actions = std::move(a.parsed.rtc->prev_actions);
     rtc.inference_delay = a.parsed.rtc->inference_delay;
-    rtc.execution_horizon = w.rtc_execution_horizon;
-    rtc.max_guidance_weight = w.rtc_max_guidance_weight;
-    rtc.schedule = w.rtc_schedule;
+    rtc.execution_horizon = w.sampler.rtc_execution_horizon;
+    rtc.max_guidance_weight = w.sampler.rtc_max_guidance_weight;
+    rtc.schedule = w.sampler.rtc_schedule;
     obs.rtc = std::move(rtc);
     a.report.rtc_applied = true;
   }

@@ -32,6 +32,8 @@ Json Router::config_json() const {
   const auto& s = engine.spec;
   return {{"family", s.family},
           {"cameras", s.cameras},
+          {"missing_camera_rule", s.missing_camera_rule},
+          {"stages", s.stages},
           {"state_dim", s.state_dim},
           {"action_dim", s.action_dim},
           {"chunk_size", s.chunk_size},

@@ -37,7 +37,7 @@ const std::vector<WedgeCounter>& wedge_counters() {
        [](const WedgeReport& r, Out& out) { once_if(r.source == runtime::ActionSource::last_good, out); },
        std::nullopt},
       {"tether_denoise_steps_total", "Denoise steps run (adaptive steps).", "",
-       [](const Wedges& w) { return w.options().adaptive_threshold > 0; },
+       [](const Wedges& w) { return w.options().sampler.adaptive_threshold > 0; },
        [](const WedgeReport& r, Out& out) {
          if (r.denoise_steps_used > 0) out.push_back({"", double(r.denoise_steps_used)});
        },
@@ -45,7 +45,7 @@ const std::vector<WedgeCounter>& wedge_counters() {
       {"tether_denoise_runs_total", "Forward passes counted in tether_denoise_steps_total.", "", nullptr,
        [](const WedgeReport& r, Out& out) { once_if(r.denoise_steps_used > 0, out); }, std::nullopt},
       {"tether_rtc_total", "Requests denoised with real-time chunking guidance.", "",
-       [](const Wedges& w) { return w.options().rtc; },
+       [](const Wedges& w) { return w.options().sampler.rtc; },
        [](const WedgeReport& r, Out& out) { once_if(r.rtc_applied, out); }, std::nullopt},
       {"tether_deadline_exceeded_total", "Requests that missed --deadline-ms.", "",
        [](const Wedges& w) { return w.options().deadline_ms > 0; }, nullptr, WedgeEvent::deadline_exceeded},

@@ -213,7 +213,7 @@ TEST(Wedges, ResponseFieldsOnlyForEnabledWedges) {
   EXPECT_EQ(f["action_source"], "model");
   WedgeOptions o;
   o.deadline_ms = 50;
-  o.adaptive_threshold = 0.1f;
+  o.sampler.adaptive_threshold = 0.1f;
   o.max_consecutive_crashes = 3;
   o.inject_latency_ms = 5;
   Wedges some(o);

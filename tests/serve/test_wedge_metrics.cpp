@@ -38,8 +38,8 @@ TEST(WedgeMetrics, OnlyEnabledWedgesAreListedAtZero) {
   }
   o.deadline_ms = 50;
   o.cloud_fallback = "http://cloud";
-  o.adaptive_threshold = 0.1f;
-  o.rtc = true;
+  o.sampler.adaptive_threshold = 0.1f;
+  o.sampler.rtc = true;
   o.max_consecutive_crashes = 3;
   o.similarity_threshold = 0.1;
   o.max_similar_skips = 2;

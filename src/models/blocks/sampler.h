@@ -39,6 +39,16 @@ struct DenoiseControl {
   float rtc_max_guidance_weight = 10;
 };
 
+// What a deployment chooses for the sampler (flags; the serve wedges only set these): adaptive stopping and RTC
+// guidance. Per request they become a DenoiseControl.
+struct SamplerOptions {
+  float adaptive_threshold = 0;  // > 0: adaptive steps (see DenoiseControl)
+  bool rtc = false;              // requests may carry RTC inputs (the previous chunk's leftover)
+  int rtc_execution_horizon = 10;
+  float rtc_max_guidance_weight = 10;
+  RtcSchedule rtc_schedule = RtcSchedule::linear;
+};
+
 struct SampleShape {
   int64_t batch = 0, chunk = 0, width = 0;  // x and v are [batch, chunk, width]
   int64_t action_dim = 0;  // the first action_dim of each width values are real actions; the rest is padding
