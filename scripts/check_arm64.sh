@@ -27,12 +27,15 @@ host_packages=(
 )
 # The target libraries, as in scripts/setup.sh. Not needed: OpenBLAS (only bench/, off here) and
 # ocl-icd-opencl-dev (Debian builds arm64 oneDNN without the OpenCL GPU runtime, so its dnnl-config.cmake does not
-# look for OpenCL). libdnnl-dev:arm64 is not co-installable with libdnnl-dev:amd64 (both ship
-# /usr/include/oneapi/dnnl/dnnl_config.h, with different contents) and is handled below; its library is.
+# look for OpenCL). Two -dev packages are not co-installable with their amd64 twins and are handled below (their
+# libraries are, and are installed here): libdnnl-dev (both ship /usr/include/oneapi/dnnl/dnnl_config.h, with
+# different contents) and libonig-dev (not Multi-Arch: same, so dpkg allows only one architecture of it).
 arm64_packages=(
-  libdnnl2 libspdlog-dev libfmt-dev libpcre2-dev libicu-dev libspng-dev libturbojpeg0-dev libboost1.81-dev
+  libdnnl2 libonig5 libicu-dev libspng-dev libturbojpeg0-dev libboost1.81-dev
   libcurl4-openssl-dev libssl-dev libgtest-dev libgmock-dev
 )
+# The -dev packages unpacked into $sysroot: "dev-package runtime-package library-name".
+sysroot_packages=("libdnnl-dev libdnnl2 libdnnl" "libonig-dev libonig5 libonig")
 
 need_update=0
 if ! dpkg --print-foreign-architectures | grep -qx arm64; then
@@ -63,20 +66,35 @@ if ((${#missing[@]})); then
     fail "apt-get install ${missing[*]} failed"
 fi
 
-# libdnnl-dev:arm64 (headers, CMake package, libdnnl.so link) goes into a folder of its own, unpacked from its .deb;
-# the CMake package there points at the real library from libdnnl2:arm64 through links.
-dnnl_version=$(dpkg-query -W -f='${Version}' libdnnl2:arm64)
-stamp="$sysroot/.libdnnl-dev_$dnnl_version"
-if [ ! -f "$stamp" ]; then
-  echo "check_arm64: unpacking libdnnl-dev:arm64 $dnnl_version into $sysroot"
+# The -dev packages above (headers, CMake package or .pc file, the lib*.so link) go into a folder of their own,
+# unpacked from their .debs at the version of the installed library, which the lib*.so links there point at. The
+# arm64 preset puts $sysroot/usr on CMAKE_PREFIX_PATH, so find_package and pkg-config look there first. The .pc
+# files name /usr; they are rewritten relative to their own folder. Redone whenever a library's version changes.
+want=""
+for entry in "${sysroot_packages[@]}"; do
+  read -r dev lib _ <<<"$entry"
+  want+="$dev=$(dpkg-query -W -f='${Version}' "$lib:arm64") "
+done
+stamp="$sysroot/.unpacked"
+if [ "$(cat "$stamp" 2>/dev/null)" != "$want" ]; then
   rm -rf "$sysroot" && mkdir -p "$sysroot/debs" || fail "cannot create $sysroot"
-  (cd "$sysroot/debs" && apt-get download -q "libdnnl-dev:arm64=$dnnl_version" 2>&1 | grep -v '^W: Download is performed unsandboxed') ||
-    true
-  deb=$(ls "$sysroot"/debs/libdnnl-dev_*_arm64.deb 2>/dev/null | head -1)
-  [ -n "$deb" ] || fail "apt-get download libdnnl-dev:arm64=$dnnl_version failed"
-  dpkg-deb -x "$deb" "$sysroot" || fail "dpkg-deb -x $deb failed"
-  for f in /usr/lib/aarch64-linux-gnu/libdnnl.so.*; do ln -sf "$f" "$sysroot/usr/lib/aarch64-linux-gnu/"; done
-  touch "$stamp"
+  for entry in "${sysroot_packages[@]}"; do
+    read -r dev lib name <<<"$entry"
+    version=$(dpkg-query -W -f='${Version}' "$lib:arm64")
+    echo "check_arm64: unpacking $dev:arm64 $version into $sysroot"
+    (cd "$sysroot/debs" && apt-get download -q "$dev:arm64=$version" 2>&1 | grep -v '^W: Download is performed unsandboxed') ||
+      true
+    deb=$(ls "$sysroot"/debs/"$dev"_*_arm64.deb 2>/dev/null | head -1)
+    [ -n "$deb" ] || fail "apt-get download $dev:arm64=$version failed"
+    dpkg-deb -x "$deb" "$sysroot" || fail "dpkg-deb -x $deb failed"
+    for f in /usr/lib/aarch64-linux-gnu/"$name".so.*; do ln -sf "$f" "$sysroot/usr/lib/aarch64-linux-gnu/"; done
+  done
+  for pc in "$sysroot"/usr/lib/aarch64-linux-gnu/pkgconfig/*.pc; do
+    [ -f "$pc" ] || continue
+    sed -i -e 's|^prefix=/usr$|prefix=${pcfiledir}/../../..|' -e 's#=/usr\([/ ]\|$\)#=${prefix}\1#' "$pc" ||
+      fail "cannot rewrite $pc"
+  done
+  printf '%s' "$want" >"$stamp"
 fi
 
 # Always configured (quick once done), so a change to the preset reaches an existing build/arm64.

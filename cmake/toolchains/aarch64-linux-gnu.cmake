@@ -8,13 +8,24 @@ set(CMAKE_C_COMPILER aarch64-linux-gnu-gcc)
 set(CMAKE_CXX_COMPILER aarch64-linux-gnu-g++)
 
 # Multiarch, no separate sysroot: the arm64 libraries live in /usr/lib/aarch64-linux-gnu next to the host's, and
-# with CMAKE_LIBRARY_ARCHITECTURE set find_library/find_package look there and never in x86_64-linux-gnu.
-# Programs (python3, the code generators) are the host's.
+# with CMAKE_LIBRARY_ARCHITECTURE set find_library/find_package look there and never in x86_64-linux-gnu. The two
+# -dev packages that cannot be installed next to their amd64 twins (libdnnl-dev, libonig-dev) are unpacked by
+# scripts/check_arm64.sh into build/arm64-sysroot, which the arm64 preset puts on CMAKE_PREFIX_PATH (pkg-config
+# searches its lib/aarch64-linux-gnu/pkgconfig too, below). Programs (python3, the code generators) are the host's.
 set(CMAKE_FIND_ROOT_PATH_MODE_PROGRAM NEVER)
 
 # pkg-config would otherwise answer with the host's .pc files (Debian ships no aarch64-linux-gnu-pkg-config).
-set(ENV{PKG_CONFIG_LIBDIR} "/usr/lib/aarch64-linux-gnu/pkgconfig:/usr/share/pkgconfig")
-set(ENV{PKG_CONFIG_PATH} "")
+# CMAKE_PREFIX_PATH's pkgconfig folders come first: FindPkgConfig adds them itself only when not cross-compiling.
+# Not redone inside try_compile, which reads this file again without CMAKE_PREFIX_PATH and shares the environment.
+get_property(_tether_in_try_compile GLOBAL PROPERTY IN_TRY_COMPILE)
+if(NOT _tether_in_try_compile)
+  set(_tether_pkg_config_dirs "")
+  foreach(_tether_prefix IN LISTS CMAKE_PREFIX_PATH)
+    string(APPEND _tether_pkg_config_dirs "${_tether_prefix}/lib/aarch64-linux-gnu/pkgconfig:")
+  endforeach()
+  set(ENV{PKG_CONFIG_LIBDIR} "${_tether_pkg_config_dirs}/usr/lib/aarch64-linux-gnu/pkgconfig:/usr/share/pkgconfig")
+  set(ENV{PKG_CONFIG_PATH} "")
+endif()
 
 # Test binaries (gtest_discover_tests, ctest) run under user-mode emulation. The prefix is `/`, whose loader comes
 # from libc6:arm64 (pulled in by the -dev:arm64 packages) and matches the libc in /lib/aarch64-linux-gnu that every
