@@ -7,7 +7,6 @@
 #include <cstdlib>
 #include <filesystem>
 #include <iostream>
-#include <sstream>
 
 #if defined(__x86_64__)
 #include <cpuid.h>
@@ -18,8 +17,6 @@
 #include "backend/cpu/packed_linear.h"
 #include "cli/commands.h"
 #include "cli/hardware.h"
-#include "cli/registry.h"
-#include "core/hash.h"
 #include "core/hf_paths.h"
 #include "core/json_util.h"
 #include "core/safetensors.h"

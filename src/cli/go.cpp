@@ -1,20 +1,15 @@
 // `tether go --model <id>`: serve a model by its registry name. Probes the machine (CPU, memory, GPU), looks the id up
 // in models/registry.json, finds the checkpoint (bundled, or the Hugging Face cache; pulled when missing), exports it
 // at the chosen precision into the Tether cache and serves it with the same flags as `tether serve`.
-#include <algorithm>
-#include <cctype>
 #include <cstdio>
 #include <cstdlib>
 #include <filesystem>
-#include <fstream>
-#include <iostream>
 
 #include "cli/commands.h"
 #include "cli/hardware.h"
 #include "cli/serve_flags.h"
 #include "cli/registry.h"
 #include "core/json_util.h"
-#include "hub/hub_client.h"
 #include "models/family.h"
 
 namespace tether::cli {

@@ -1,7 +1,6 @@
 // `tether predict`: one observation in, one action chunk out, with the latency of each stage.
 #include <chrono>
 #include <cstdio>
-#include <filesystem>
 #include <iostream>
 
 #include "cli/commands.h"

@@ -2,7 +2,6 @@
 #include "core/json_util.h"
 
 #include <fstream>
-#include <sstream>
 
 namespace tether {
 

@@ -3,7 +3,6 @@
 
 #include <cmath>
 
-#include "core/json_util.h"
 #include "serve/base64.h"
 #include "vision/image.h"
 

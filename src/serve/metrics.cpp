@@ -2,7 +2,6 @@
 #include "serve/metrics.h"
 
 #include <algorithm>
-#include <cmath>
 #include <cstdio>
 #include <cstdlib>
 

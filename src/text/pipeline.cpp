@@ -5,7 +5,6 @@
 
 #include <array>
 #include <functional>
-#include <tuple>
 
 #include "core/error.h"
 #include "text/onig_regex.h"

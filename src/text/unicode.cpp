@@ -7,8 +7,6 @@
 #include <unicode/uset.h>
 #include <unicode/ustring.h>
 
-#include <vector>
-
 #include "core/error.h"
 
 namespace tether::text {

@@ -8,10 +8,8 @@
 #include <cmath>
 #include <cstring>
 #include <string>
-#include <type_traits>
 #include <vector>
 
-#include "backend/cpu/gemm.h"
 #include "backend/cpu/panel_gemm.h"
 #include "backend/cpu/vec_math.h"
 #include "core/error.h"
