@@ -138,15 +138,13 @@ Rows tower_ref(const Tower& w, const std::vector<float>& px, int64_t h, int64_t 
   return post_norm ? layer_norm_ref(w, "post_layernorm", x) : x;
 }
 
-void check_variant(VisionConfig::PositionIds ids_kind, bool post_norm, int64_t h, int64_t wd,
-                   const std::vector<int64_t>& expected_ids) {
-  const Tower w = make_tower();
+// The tower's weights written as a checkpoint and loaded into a block of the given variant.
+VisionTower load_tower(backend::Backend& be, const Tower& w, VisionConfig::PositionIds ids_kind, bool post_norm) {
   std::map<std::string, Tensor> out;
   for (const auto& [name, values] : w.t) out[name] = Tensor{DType::f32, w.shapes.at(name), values.data(), nullptr};
   const auto path = std::filesystem::temp_directory_path() / "tether_vision_tower.safetensors";
   write_safetensors(path.string(), out);
   Weights weights(SafeTensorsFile::open(path.string()));
-
   VisionConfig cfg;
   cfg.hidden = kD;
   cfg.intermediate = kF;
@@ -156,9 +154,16 @@ void check_variant(VisionConfig::PositionIds ids_kind, bool post_norm, int64_t h
   cfg.image_size = kImage;
   cfg.position_ids = ids_kind;
   cfg.post_norm = post_norm;
-  auto be = backend::make_backend("cpu");
   VisionTower tower;
-  tower.load(*be, weights, "", cfg, cpu::Precision::fp32);
+  tower.load(be, weights, "", cfg, cpu::Precision::fp32);
+  return tower;
+}
+
+void check_variant(VisionConfig::PositionIds ids_kind, bool post_norm, int64_t h, int64_t wd,
+                   const std::vector<int64_t>& expected_ids) {
+  const Tower w = make_tower();
+  auto be = backend::make_backend("cpu");
+  VisionTower tower = load_tower(*be, w, ids_kind, post_norm);
 
   const int64_t B = 2, n = tower.num_patches(h, wd);
   const auto px = random_vec(B * 3 * h * wd, 77, 1.0f);
@@ -201,23 +206,8 @@ TEST(VisionTowerBlock, Idefics3BucketedIdsOnASmallerImage) {
 }
 
 TEST(VisionTowerBlock, SequentialIdsNeedTheNativeSize) {
-  const Tower w = make_tower();
-  std::map<std::string, Tensor> out;
-  for (const auto& [name, values] : w.t) out[name] = Tensor{DType::f32, w.shapes.at(name), values.data(), nullptr};
-  const auto path = std::filesystem::temp_directory_path() / "tether_vision_tower_native.safetensors";
-  write_safetensors(path.string(), out);
-  Weights weights(SafeTensorsFile::open(path.string()));
-  VisionConfig cfg;
-  cfg.hidden = kD;
-  cfg.intermediate = kF;
-  cfg.layers = 1;
-  cfg.heads = kHeads;
-  cfg.patch = kPatch;
-  cfg.image_size = kImage;
-  cfg.position_ids = VisionConfig::PositionIds::sequential;
   auto be = backend::make_backend("cpu");
-  VisionTower tower;
-  tower.load(*be, weights, "", cfg, cpu::Precision::fp32);
+  VisionTower tower = load_tower(*be, make_tower(), VisionConfig::PositionIds::sequential, true);
   auto pa = be->alloc<float>(3 * 8 * 12), ya = be->alloc<float>(6 * kD);
   EXPECT_THROW(tower.forward(*be, pa.at(), 1, 8, 12, ya.at()), Error);
 }
