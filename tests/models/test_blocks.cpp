@@ -14,6 +14,7 @@
 #include "models/blocks/action_expert.h"
 #include "models/blocks/attention_masks.h"
 #include "models/blocks/decoder.h"
+#include "random_checkpoint.h"
 
 using namespace tether;
 using namespace tether::models;
@@ -24,30 +25,8 @@ namespace {
 constexpr int64_t kHidden = 16, kHeads = 2, kKvHeads = 1, kHeadDim = 8, kInter = 24, kCond = 12;
 constexpr int64_t kBatch = 2, kPrefix = 5, kLen = 3;
 
-std::vector<float> random_vec(int64_t n, uint32_t seed, float scale = 0.5f) {
-  std::mt19937 gen(seed);
-  std::uniform_real_distribution<float> dist(-scale, scale);
-  std::vector<float> v(static_cast<std::size_t>(n));
-  for (auto& x : v) x = dist(gen);
-  return v;
-}
-
-struct Checkpoint {
-  std::map<std::string, std::vector<float>> tensors;
-  std::map<std::string, Shape> shapes;
-  void add(const std::string& name, Shape shape, uint32_t seed) {
-    tensors[name] = random_vec(shape_numel(shape), seed);
-    shapes[name] = std::move(shape);
-  }
-  const std::vector<float>& operator[](const std::string& name) const { return tensors.at(name); }
-  std::string write(const std::string& tag) const {
-    std::map<std::string, Tensor> out;
-    for (const auto& [name, values] : tensors) out[name] = Tensor{DType::f32, shapes.at(name), values.data(), nullptr};
-    const auto path = std::filesystem::temp_directory_path() / ("tether_blocks_" + tag + ".safetensors");
-    write_safetensors(path.string(), out);
-    return path.string();
-  }
-};
+using test_util::random_vec;
+using Checkpoint = test_util::RandomCheckpoint;
 
 // One layer "layers.0." with the projections a joint (self) or cross layer has.
 Checkpoint layer_checkpoint(NormKind norm, bool cross) {
@@ -112,7 +91,7 @@ class ExpertBlock : public ::testing::TestWithParam<Case> {};
 TEST_P(ExpertBlock, MatchesThePlainReference) {
   const Case c = GetParam();
   const Checkpoint ck = layer_checkpoint(c.norm, c.cross);
-  Weights w(SafeTensorsFile::open(ck.write(c.name())));
+  Weights w(SafeTensorsFile::open(ck.write("blocks_" + c.name())));
   auto be = backend::make_backend("cpu");
 
   DecoderConfig cfg;

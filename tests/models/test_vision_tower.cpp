@@ -12,6 +12,7 @@
 #include <vector>
 
 #include "models/blocks/vision_tower.h"
+#include "random_checkpoint.h"
 
 using namespace tether;
 using namespace tether::models;
@@ -21,22 +22,8 @@ namespace {
 
 constexpr int64_t kD = 8, kHeads = 2, kF = 12, kPatch = 4, kImage = 12, kSide = kImage / kPatch;
 
-std::vector<float> random_vec(int64_t n, uint32_t seed, float scale = 0.5f) {
-  std::mt19937 gen(seed);
-  std::uniform_real_distribution<float> dist(-scale, scale);
-  std::vector<float> v(static_cast<std::size_t>(n));
-  for (auto& x : v) x = dist(gen);
-  return v;
-}
-
-struct Tower {
-  std::map<std::string, std::vector<float>> t;
-  std::map<std::string, Shape> shapes;
-  void add(const std::string& name, Shape shape, uint32_t seed) {
-    t[name] = random_vec(shape_numel(shape), seed);
-    shapes[name] = std::move(shape);
-  }
-};
+using test_util::random_vec;
+using Tower = test_util::RandomCheckpoint;
 
 Tower make_tower() {
   Tower w;
@@ -65,8 +52,8 @@ Tower make_tower() {
 using Rows = std::vector<std::vector<double>>;
 
 Rows linear_ref(const Tower& w, const std::string& name, const Rows& x, int64_t n) {
-  const auto& W = w.t.at(name + ".weight");
-  const auto& b = w.t.at(name + ".bias");
+  const auto& W = w[name + ".weight"];
+  const auto& b = w[name + ".bias"];
   Rows y(x.size(), std::vector<double>(static_cast<std::size_t>(n)));
   for (std::size_t r = 0; r < x.size(); ++r)
     for (int64_t j = 0; j < n; ++j) {
@@ -86,7 +73,7 @@ Rows layer_norm_ref(const Tower& w, const std::string& name, const Rows& x) {
     for (double v : row) var += (v - mean) * (v - mean);
     var /= double(row.size());
     for (std::size_t i = 0; i < row.size(); ++i)
-      row[i] = (row[i] - mean) / std::sqrt(var + 1e-6) * w.t.at(name + ".weight")[i] + w.t.at(name + ".bias")[i];
+      row[i] = (row[i] - mean) / std::sqrt(var + 1e-6) * w[name + ".weight"][i] + w[name + ".bias"][i];
   }
   return y;
 }
@@ -96,16 +83,16 @@ Rows tower_ref(const Tower& w, const std::vector<float>& px, int64_t h, int64_t 
                bool post_norm) {
   const int64_t ph = h / kPatch, pw = wd / kPatch;
   Rows x(static_cast<std::size_t>(ph * pw), std::vector<double>(kD));
-  const auto& pe = w.t.at("embeddings.patch_embedding.weight");
+  const auto& pe = w["embeddings.patch_embedding.weight"];
   for (int64_t py = 0; py < ph; ++py)
     for (int64_t pxx = 0; pxx < pw; ++pxx)
       for (int64_t e = 0; e < kD; ++e) {
-        double acc = w.t.at("embeddings.patch_embedding.bias")[e];
+        double acc = w["embeddings.patch_embedding.bias"][e];
         for (int64_t c = 0; c < 3; ++c)
           for (int64_t i = 0; i < kPatch; ++i)
             for (int64_t j = 0; j < kPatch; ++j)
               acc += double(px[(c * h + py * kPatch + i) * wd + pxx * kPatch + j]) * pe[((e * 3 + c) * kPatch + i) * kPatch + j];
-        x[py * pw + pxx][e] = acc + w.t.at("embeddings.position_embedding.weight")[ids[py * pw + pxx] * kD + e];
+        x[py * pw + pxx][e] = acc + w["embeddings.position_embedding.weight"][ids[py * pw + pxx] * kD + e];
       }
   const std::string p = "encoder.layers.0.";
   const Rows n1 = layer_norm_ref(w, p + "layer_norm1", x);
@@ -140,11 +127,7 @@ Rows tower_ref(const Tower& w, const std::vector<float>& px, int64_t h, int64_t 
 
 // The tower's weights written as a checkpoint and loaded into a block of the given variant.
 VisionTower load_tower(backend::Backend& be, const Tower& w, VisionConfig::PositionIds ids_kind, bool post_norm) {
-  std::map<std::string, Tensor> out;
-  for (const auto& [name, values] : w.t) out[name] = Tensor{DType::f32, w.shapes.at(name), values.data(), nullptr};
-  const auto path = std::filesystem::temp_directory_path() / "tether_vision_tower.safetensors";
-  write_safetensors(path.string(), out);
-  Weights weights(SafeTensorsFile::open(path.string()));
+  Weights weights(SafeTensorsFile::open(w.write("vision_tower")));
   VisionConfig cfg;
   cfg.hidden = kD;
   cfg.intermediate = kF;
