@@ -110,6 +110,6 @@ rm -rf "$venv"
 mkdir -p "$(dirname "$venv")"
 "$py" -m venv "$venv"
 "$venv/bin/python" -m pip install -q -r "$req"
-"$venv/bin/python" -c 'import lerobot.policies.smolvla.modeling_smolvla, transformers, torch'
+"$venv/bin/python" -c 'import lerobot.policies.smolvla.modeling_smolvla, lerobot.policies.pi0.modeling_pi0, lerobot.policies.pi05.modeling_pi05, transformers, torch, scipy, sentencepiece'
 echo "$want" >"$stamp"
 log "ready: $venv"
