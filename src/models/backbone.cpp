@@ -10,7 +10,7 @@ namespace tether::models {
 
 namespace fs = std::filesystem;
 
-fs::path find_backbone_dir(const fs::path& checkpoint_dir, const std::string& name) {
+fs::path find_backbone_dir(const fs::path& checkpoint_dir, const std::string& name, const std::string& named_by) {
   std::vector<fs::path> tried;
   auto usable = [&](const fs::path& p) {
     tried.push_back(p);
@@ -28,15 +28,15 @@ fs::path find_backbone_dir(const fs::path& checkpoint_dir, const std::string& na
   }
   std::string where;
   for (const auto& p : tried) where += (where.empty() ? "" : ", ") + p.string();
-  throw Error(ErrorCode::not_found, "backbone '" + name + "' (vlm_model_name in " +
-                                        (checkpoint_dir / "config.json").string() + ") not found: no config.json in " +
-                                        where + " (tether models pull fetches it with the checkpoint)");
+  throw Error(ErrorCode::not_found, "'" + name + "' (" + named_by + " of " + checkpoint_dir.string() +
+                                        ") not found: no config.json in " + where +
+                                        " (tether models pull fetches it with the checkpoint)");
 }
 
 std::vector<std::string> backbone_files(const fs::path& dir) {
   std::vector<std::string> out;
   for (const char* f : {"config.json", "tokenizer.json", "tokenizer_config.json", "special_tokens_map.json",
-                        "added_tokens.json", "vocab.json", "merges.txt", "processor_config.json",
+                        "added_tokens.json", "vocab.json", "merges.txt", "tokenizer.model", "processor_config.json",
                         "preprocessor_config.json", "chat_template.json"})
     if (fs::is_regular_file(dir / f)) out.push_back(f);
   return out;

@@ -10,7 +10,9 @@ namespace tether::models {
 
 // The directory holding `name`'s config.json: `name` relative to the checkpoint directory, an absolute path, or the
 // snapshot of Hugging Face repo `name` in the local hub cache (tether::hf_hub_cache(), refs/main). Throws not_found naming every place looked at.
-std::filesystem::path find_backbone_dir(const std::filesystem::path& checkpoint_dir, const std::string& name);
+// `named_by` says where the name came from, for the error.
+std::filesystem::path find_backbone_dir(const std::filesystem::path& checkpoint_dir, const std::string& name,
+                                        const std::string& named_by = "vlm_model_name in config.json");
 
 // The backbone files a deployment needs (architecture, tokenizer, processor settings), those present in `dir`.
 std::vector<std::string> backbone_files(const std::filesystem::path& dir);

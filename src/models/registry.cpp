@@ -5,6 +5,7 @@
 
 #include "core/hash.h"
 #include "models/family.h"
+#include "models/pi0.h"
 #include "models/smolvla.h"
 
 namespace tether::models {
@@ -14,6 +15,8 @@ namespace fs = std::filesystem;
 const std::vector<const FamilyDescriptor*>& families() {
   static const std::vector<const FamilyDescriptor*> kFamilies = {
       &smolvla_family(),
+      &pi0_family(),
+      &pi05_family(),
   };
   return kFamilies;
 }

@@ -127,6 +127,15 @@ void TensorStore::strip_from_names(const std::string& fragment) {
   where_ = std::move(renamed);
 }
 
+bool TensorStore::rename(const std::string& from, const std::string& to) {
+  auto it = where_.find(from);
+  if (it == where_.end()) return false;
+  Location loc = std::move(it->second);
+  where_.erase(it);
+  where_[to] = std::move(loc);
+  return true;
+}
+
 void TensorStore::drop_resident_pages() const {
   for (const auto& f : files_) f.drop_resident_pages();
 }

@@ -52,6 +52,9 @@ class TensorStore {
   void hide(const std::string& name);
   // Renames every tensor whose name contains `fragment` to the name without it (torch.compile's "._orig_mod").
   void strip_from_names(const std::string& fragment);
+  // Gives tensor `from` the name `to` (a key rename upstream applies on load); false when there is no `from`. An
+  // existing `to` is replaced, as a later key of a state dict replaces an earlier one.
+  bool rename(const std::string& from, const std::string& to);
 
   void drop_resident_pages() const;
   void drop_resident_pages(const std::string& name) const;

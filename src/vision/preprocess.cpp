@@ -98,9 +98,13 @@ struct Job {
   bool affine;                  // store y * scale + offset instead of y
   BilinearKernel kernel;
   float scale = 1.0f, offset = 0.0f;
+  bool clamp01 = false;  // clamp the interpolated value to [0, 1] first (openpi's centred variant does)
 };
 
-inline float finish(float y, const Job& j) { return j.affine ? y * j.scale + j.offset : y; }
+inline float finish(float y, const Job& j) {
+  if (j.clamp01) y = std::min(std::max(y, 0.0f), 1.0f);
+  return j.affine ? y * j.scale + j.offset : y;
+}
 
 template <class Src>
 [[gnu::always_inline]] inline void run_separable(const Src& src, const Job& j) {
@@ -201,13 +205,28 @@ void check_ptr(const void* p, const char* what) {
   if (p == nullptr) throw Error(ErrorCode::invalid_argument, std::string(what) + " buffer is null");
 }
 
-// Fills the top rows and left columns that resize_with_pad leaves for padding.
-void fill_padding(float* out, int channels, int dst_h, int dst_w, int top, int left, float value) {
+// Fills everything of each (dst_h, dst_w) plane outside the resized region (h, w) placed at (top, left).
+void fill_padding(float* out, int channels, int dst_h, int dst_w, int top, int left, int h, int w, float value) {
   for (int c = 0; c < channels; ++c) {
     float* plane = out + int64_t(c) * dst_h * dst_w;
     std::fill(plane, plane + int64_t(top) * dst_w, value);
-    for (int y = top; y < dst_h; ++y) std::fill_n(plane + int64_t(y) * dst_w, left, value);
+    for (int y = top; y < top + h; ++y) {
+      std::fill_n(plane + int64_t(y) * dst_w, left, value);
+      std::fill(plane + int64_t(y) * dst_w + left + w, plane + int64_t(y + 1) * dst_w, value);
+    }
+    std::fill(plane + int64_t(top + h) * dst_w, plane + int64_t(dst_h) * dst_w, value);
   }
+}
+
+struct Placement {
+  int top = 0, left = 0;
+};
+// Where the resized region sits: bottom-right (padding on the top and left) or centred, the extra pixel of an odd
+// padding going to the bottom / right (Python's divmod, as openpi writes it).
+Placement place(ResizedSize r, int out_h, int out_w, PadPlacement where) {
+  const int pad_h = std::max(0, out_h - r.height), pad_w = std::max(0, out_w - r.width);
+  if (where == PadPlacement::top_left) return {pad_h, pad_w};
+  return {pad_h / 2, pad_w / 2};
 }
 
 void check_image(const Image& img) {
@@ -291,7 +310,7 @@ void resize_with_pad(const float* in, int channels, int in_h, int in_w, int out_
     return;
   }
   const ResizedSize r = resize_with_pad_size(in_h, in_w, out_h, out_w);
-  const int top = std::max(0, out_h - r.height), left = std::max(0, out_w - r.width);
+  const auto [top, left] = place(r, out_h, out_w, PadPlacement::top_left);
   t_rows.build(in_h, r.height);
   t_cols.build(in_w, r.width);
   const Job job{channels, r.height,
@@ -300,11 +319,11 @@ void resize_with_pad(const float* in, int channels, int in_h, int in_w, int out_
                 top,      left,
                 false,    torch_bilinear_kernel(channels, in_h, in_w, r.height, r.width, threads)};
   run_dispatch(PlanarF32{in, int64_t(in_h) * in_w, in_w}, job);
-  fill_padding(out, channels, out_h, out_w, top, left, pad_value);
+  fill_padding(out, channels, out_h, out_w, top, left, r.height, r.width, pad_value);
 }
 
 void resize_with_pad_normalized(const Image& img, int out_h, int out_w, float* out, TorchThreads threads,
-                                PixelRange range, float pad_value) {
+                                PixelRange range, float pad_value, PadPlacement placement) {
   check_image(img);
   check_ptr(out, "output");
   check_size("preprocess target", out_h, out_w);
@@ -318,7 +337,7 @@ void resize_with_pad_normalized(const Image& img, int out_h, int out_w, float* o
     return;
   }
   const ResizedSize r = resize_with_pad_size(in_h, in_w, out_h, out_w);
-  const int top = std::max(0, out_h - r.height), left = std::max(0, out_w - r.width);
+  const auto [top, left] = place(r, out_h, out_w, placement);
   t_rows.build(in_h, r.height);
   t_cols.build(in_w, r.width);
   Job job{3,       r.height,
@@ -328,9 +347,10 @@ void resize_with_pad_normalized(const Image& img, int out_h, int out_w, float* o
           true,    torch_bilinear_kernel(3, in_h, in_w, r.height, r.width, threads)};
   job.scale = scale;
   job.offset = offset;
+  job.clamp01 = placement == PadPlacement::centred;
   run_dispatch(InterleavedU8{img.rgb.data(), in_w}, job);
   // Padding goes through the same map as the pixels (0 -> -1 for [-1, 1]).
-  fill_padding(out, 3, out_h, out_w, top, left, pad_value * scale + offset);
+  fill_padding(out, 3, out_h, out_w, top, left, r.height, r.width, pad_value * scale + offset);
 }
 
 }  // namespace tether::vision

@@ -44,12 +44,17 @@ struct PixelRange {
   float lo = -1.0f, hi = 1.0f;
 };
 
+// Where the padding goes: SmolVLA's resize_with_pad pads the top and left; openpi's resize_with_pad_torch (pi0,
+// pi0.5) centres the image, the odd pixel of padding going to the bottom / right, and clamps the resized values to
+// [0, 1] before padding.
+enum class PadPlacement { top_left, centred };
+
 // One camera as the lerobot VLA policies prepare it: x / 255, resize_with_pad(pad_value) to (out_h, out_w), then
 // mapped to `range`, so with the defaults padded pixels end as -1. `out` holds 3 * out_h * out_w floats (CHW).
 // Note the SmolVLA config stores resize_imgs_with_padding as (width, height).
 void resize_with_pad_normalized(const Image& img, int out_h, int out_w, float* out,
                                 TorchThreads threads = TorchThreads::many, PixelRange range = {},
-                                float pad_value = 0.0f);
+                                float pad_value = 0.0f, PadPlacement placement = PadPlacement::top_left);
 
 namespace detail {
 // Tests only: run the portable kernel build (libm fma) even on a CPU with FMA instructions, to

@@ -43,4 +43,24 @@ void causal_suffix_masks(const std::vector<uint8_t>& prefix_pad, int64_t B, int6
   }
 }
 
+void block_suffix_masks(const std::vector<uint8_t>& prefix_pad, int64_t B, int64_t Lp,
+                        const std::vector<int8_t>& block_start, std::vector<uint8_t>& mask,
+                        std::vector<int64_t>& positions) {
+  const int64_t C = int64_t(block_start.size());
+  mask.assign(std::size_t(B * C * (Lp + C)), 0);
+  positions.assign(std::size_t(B * C), 0);
+  std::vector<int64_t> cum(static_cast<std::size_t>(C));
+  for (int64_t i = 0, acc = 0; i < C; ++i) cum[i] = acc += block_start[i];
+  for (int64_t b = 0; b < B; ++b) {
+    int64_t valid = 0;
+    for (int64_t t = 0; t < Lp; ++t) valid += prefix_pad[b * Lp + t];
+    for (int64_t i = 0; i < C; ++i) {
+      positions[b * C + i] = valid + i;
+      uint8_t* row = &mask[(b * C + i) * (Lp + C)];
+      for (int64_t t = 0; t < Lp; ++t) row[t] = prefix_pad[b * Lp + t];
+      for (int64_t j = 0; j < C; ++j) row[Lp + j] = cum[j] <= cum[i];
+    }
+  }
+}
+
 }  // namespace tether::models

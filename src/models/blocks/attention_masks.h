@@ -21,4 +21,13 @@ void causal_suffix_masks(const std::vector<uint8_t>& prefix_pad, int64_t batch, 
                          std::vector<uint8_t>& joint_mask, std::vector<uint8_t>& cross_mask,
                          std::vector<int64_t>& joint_positions, std::vector<int64_t>& cross_positions);
 
+// A suffix of `block_start.size()` tokens in attention blocks after a [batch, prefix_len] prefix, as make_att_2d_masks
+// builds it for pi0's and pi0.5's suffix: block_start[i] = 1 where a new block starts (earlier suffix tokens cannot
+// see it). Suffix token i sees every real prefix token and suffix token j when cumsum(block_start)[j] <=
+// cumsum(block_start)[i]. Writes mask [batch, len, prefix_len + len] and positions [batch, len] (continuing after the
+// real prefix tokens).
+void block_suffix_masks(const std::vector<uint8_t>& prefix_pad, int64_t batch, int64_t prefix_len,
+                        const std::vector<int8_t>& block_start, std::vector<uint8_t>& mask,
+                        std::vector<int64_t>& positions);
+
 }  // namespace tether::models

@@ -1,0 +1,91 @@
+// pi0's and pi0.5's family descriptors: lerobot checkpoints of type "pi0" / "pi05" whose PaliGemma tokenizer is named
+// by the preprocessor's tokenizer step and found beside the checkpoint or in the hub cache.
+#include <filesystem>
+
+#include "models/backbone.h"
+#include "models/lerobot/checkpoint.h"
+#include "models/pi0.h"
+
+namespace tether::models {
+
+namespace fs = std::filesystem;
+
+namespace {
+
+constexpr const char* kTokenizerRepo = "google/paligemma-3b-pt-224";
+
+std::vector<std::string> weight_files(const fs::path& dir) { return TensorStore::files_in(dir.string()); }
+
+TensorStore open_weights(const fs::path& dir) { return TensorStore::open_dir(dir.string()); }
+
+Normalization load_normalization(const fs::path& dir, const Json& config, TensorStore& weights) {
+  return lerobot::load_normalization(dir.string(), config, weights);
+}
+
+// The tokenizer repo the preprocessor's tokenizer step names (upstream's default when there is no pipeline file).
+std::string tokenizer_name(const fs::path& dir) {
+  const fs::path pre = dir / "policy_preprocessor.json";
+  if (!fs::exists(pre)) return kTokenizerRepo;
+  const Json p = read_json_file(pre.string());
+  for (const auto& step : p.value("steps", Json::array()))
+    if (step.value("registry_name", "") == "tokenizer_processor")
+      return step.value("config", Json::object()).value("tokenizer_name", std::string(kTokenizerRepo));
+  return kTokenizerRepo;
+}
+
+// Processor files copied; the tokenizer's files travel with the export under the repo id the preprocessor names
+// (google/paligemma-3b-pt-224/), which is the first place the loader looks, relative to the checkpoint.
+ExportPlan export_plan(const fs::path& dir, const Json& config) {
+  ExportPlan plan;
+  plan.copy = lerobot::processor_files(dir.string());
+  const std::string name = tokenizer_name(dir);
+  const fs::path tokenizer = find_backbone_dir(dir, name, "the tokenizer_processor step's tokenizer_name");
+  if (fs::path(name).is_absolute())
+    throw Error(ErrorCode::unsupported, (dir / "policy_preprocessor.json").string() +
+                                            ": an absolute tokenizer_name cannot be exported (name a hub repo)");
+  plan.bundles.push_back({tokenizer, name, backbone_files(tokenizer)});
+  plan.config = config;
+  return plan;
+}
+
+constexpr const char* kMissingCamera =
+    "an absent camera is replaced by a -1 image that is masked out (as upstream); at least one camera must be present";
+
+const FamilyDescriptor kPi0{
+    .name = "pi0",
+    .summary = "pi0 (lerobot port of openpi): PaliGemma prefix (SigLIP + Gemma 2B), Gemma 300M action expert with a "
+               "state token, flow-matching sampler",
+    .recognition = "config.json \"type\": \"pi0\", lerobot",
+    .recognises = [](const CheckpointProbe& p) { return lerobot::policy_type(p.config) == "pi0"; },
+    .tokenizer = TokenizerKind::sentencepiece,
+    .stages = {"preprocess", "vision", "prefix", "denoise"},
+    .missing_camera_rule = kMissingCamera,
+    .weight_files = &weight_files,
+    .open_weights = &open_weights,
+    .load_normalization = &load_normalization,
+    .load = &load_pi0,
+    .export_plan = &export_plan,
+};
+
+const FamilyDescriptor kPi05{
+    .name = "pi05",
+    .summary = "pi0.5 (lerobot port of openpi): PaliGemma prefix with the discretised state in the prompt, Gemma "
+               "300M action expert with time-conditioned adaptive RMSNorm, flow-matching sampler",
+    .recognition = "config.json \"type\": \"pi05\", lerobot",
+    .recognises = [](const CheckpointProbe& p) { return lerobot::policy_type(p.config) == "pi05"; },
+    .tokenizer = TokenizerKind::sentencepiece,
+    .stages = {"preprocess", "vision", "prefix", "denoise"},
+    .missing_camera_rule = kMissingCamera,
+    .weight_files = &weight_files,
+    .open_weights = &open_weights,
+    .load_normalization = &load_normalization,
+    .load = &load_pi05,
+    .export_plan = &export_plan,
+};
+
+}  // namespace
+
+const FamilyDescriptor& pi0_family() { return kPi0; }
+const FamilyDescriptor& pi05_family() { return kPi05; }
+
+}  // namespace tether::models
