@@ -1,4 +1,4 @@
-"""Latency of the upstream lerobot SmolVLA policy on CPU (fp32), the reference the C++ engine is compared to.
+"""Latency of an upstream lerobot policy (SmolVLA, pi0, pi0.5) on CPU (fp32), the reference the C++ engine is compared to.
 
 Run inside the oracle venv:
   tools/oracle/run.sh bench/lerobot_reference.py --checkpoint DIR --image camera1=img.png ... \
@@ -30,7 +30,7 @@ from PIL import Image
 
 def parse_args(argv):
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--checkpoint", required=True, help="SmolVLA checkpoint directory (upstream layout)")
+    p.add_argument("--checkpoint", required=True, help="lerobot checkpoint directory (upstream layout)")
     p.add_argument("--image", action="append", default=[], metavar="CAMERA=FILE",
                    help="camera key (full 'observation.images.x' or short 'x') and image file; repeat per camera")
     p.add_argument("--state", required=True, help="comma-separated state vector in robot units")
@@ -54,8 +54,7 @@ def main(argv=None) -> int:
     import lerobot
     import transformers
     from lerobot.configs.policies import PreTrainedConfig
-    from lerobot.policies.factory import make_pre_post_processors
-    from lerobot.policies.smolvla.modeling_smolvla import SmolVLAPolicy
+    from lerobot.policies.factory import get_policy_class, make_pre_post_processors
     from safetensors.torch import load_file, save_file
 
     ckpt = Path(args.checkpoint).resolve()
@@ -76,8 +75,9 @@ def main(argv=None) -> int:
     try:
         cfg = PreTrainedConfig.from_pretrained(str(ckpt))
         cfg.device = "cpu"
+        policy_class = get_policy_class(cfg.type)
         with contextlib.redirect_stdout(io.StringIO()):
-            policy = SmolVLAPolicy.from_pretrained(str(ckpt), config=cfg)
+            policy = policy_class.from_pretrained(str(ckpt), config=cfg)
         policy = policy.to(torch.float32).eval()
         pre, post = make_pre_post_processors(cfg, pretrained_path=str(ckpt))
         load_s = time.perf_counter() - t0
@@ -127,6 +127,7 @@ def main(argv=None) -> int:
     rss_kb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
     result = {
         "engine": "lerobot-pytorch",
+        "policy": cfg.type,
         "checkpoint": str(ckpt),
         "device": "cpu",
         "dtype": "float32",
