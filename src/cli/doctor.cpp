@@ -198,11 +198,17 @@ void model_checks(const std::string& dir, std::vector<Check>& out) {
   }
   try {
     models::TensorStore store = family ? family->open_weights(d) : models::TensorStore::open_dir(d.string());
-    int64_t params = 0;
-    for (const auto& name : store.names()) params += shape_numel(store.entry(name).shape);
+    int64_t params = 0, kept = 0;
+    for (const auto& name : store.names()) {
+      const int64_t n = shape_numel(store.entry(name).shape);
+      params += n;
+      if (!family || !family->keeps_copy || family->keeps_copy(name)) kept += n;
+    }
     double bytes = 0;
     for (const auto& f : files) bytes += double(fs::file_size(d / f));
-    const double need = double(params) * 4.0 * 1.1;  // float32 weights plus activations
+    // The tensors the model keeps a copy of, at 4 (fp32) or 2 (bf16, fp16) bytes each, plus a tenth for
+    // activations; tensors read in place from the file are paged in on demand and not counted.
+    const double need = double(kept) * 4.0 * 1.1, need_half = double(kept) * 2.0 * 1.1;
     const double avail = double(meminfo_bytes("MemAvailable"));
     out.push_back({"model", "weights", Status::ok,
                    count_str(params) + " parameters, " + gb(bytes) + " on disk" +
@@ -213,7 +219,10 @@ void model_checks(const std::string& dir, std::vector<Check>& out) {
                    (files.size() == 1 ? files[0] : std::string("weights")) + " " + hash.substr(hash.find(':') + 1), ""});
     out.push_back({"model", "fits in memory (fp32)", need < avail ? Status::ok : Status::fail,
                    "needs about " + gb(need) + ", " + gb(avail) + " available",
-                   "free memory, or export in bf16 (about half)"});
+                   "free memory, or run in bf16 (--precision bf16, about half)"});
+    out.push_back({"model", "fits in memory (bf16)", need_half < avail ? Status::ok : Status::fail,
+                   "needs about " + gb(need_half) + ", " + gb(avail) + " available",
+                   "free memory, or use a machine with more"});
     if (family && has_config) {
       const models::Normalization n = family->load_normalization(d, read_json_file((d / "config.json").string()), store);
       out.push_back({"model", "normalisation", n.warnings.empty() ? Status::ok : Status::warn,

@@ -68,6 +68,10 @@ struct FamilyDescriptor {
                                  const LoadOptions& options) = nullptr;
   // The files an export carries and its rewritten config.json.
   ExportPlan (*export_plan)(const std::filesystem::path& dir, const Json& config) = nullptr;
+  // Whether the loaded model keeps its own copy of a tensor (converted to the compute precision); false for tensors
+  // it never reads or reads a row at a time from the mapped file (token embeddings). Null: every tensor. The doctor's
+  // memory estimate counts these.
+  bool (*keeps_copy)(const std::string& tensor) = nullptr;
 };
 
 // Every family this build knows, in registry order.
