@@ -3,6 +3,7 @@
 // strings.
 #include "text/pipeline.h"
 
+#include <algorithm>
 #include <array>
 #include <functional>
 
@@ -443,7 +444,7 @@ class SequencePostProcessor final : public PostProcessor {
 
 class ByteLevelDecoder final : public Decoder {
  public:
-  std::string decode(const std::vector<std::string>& tokens) const override {
+  std::vector<std::string> decode_chain(std::vector<std::string> tokens) const override {
     const ByteTable& table = byte_table();
     std::string bytes;
     std::string token_bytes;
@@ -465,8 +466,130 @@ class ByteLevelDecoder final : public Decoder {
       }
       bytes += all ? token_bytes : t;
     }
-    return utf8_lossy(bytes);
+    return {utf8_lossy(bytes)};
   }
+};
+
+class SequenceDecoder final : public Decoder {
+ public:
+  explicit SequenceDecoder(std::vector<std::unique_ptr<Decoder>> parts)
+      : parts_(std::move(parts)) {}
+  std::vector<std::string> decode_chain(std::vector<std::string> tokens) const override {
+    for (const auto& d : parts_) tokens = d->decode_chain(std::move(tokens));
+    return tokens;
+  }
+
+ private:
+  std::vector<std::unique_ptr<Decoder>> parts_;
+};
+
+// Each token with the pattern's matches replaced (SentencePiece's "\u2581" back to a space).
+class ReplaceDecoder final : public Decoder {
+ public:
+  ReplaceDecoder(OnigRegex re, std::string content)
+      : re_(std::move(re)), content_(std::move(content)) {}
+  std::vector<std::string> decode_chain(std::vector<std::string> tokens) const override {
+    for (std::string& t : tokens) {
+      std::string out;
+      std::size_t last = 0;
+      for (auto [b, e] : re_.find_all(t)) {
+        out.append(t, last, b - last);
+        out += content_;
+        last = e;
+      }
+      out.append(t, last, std::string::npos);
+      t = std::move(out);
+    }
+    return tokens;
+  }
+
+ private:
+  OnigRegex re_;
+  std::string content_;
+};
+
+// Runs of "<0xHH>" tokens become the text of their bytes, or one U+FFFD per byte when those bytes
+// are not valid UTF-8, as the crate's ByteFallback decoder does.
+class ByteFallbackDecoder final : public Decoder {
+ public:
+  std::vector<std::string> decode_chain(std::vector<std::string> tokens) const override {
+    std::vector<std::string> out;
+    out.reserve(tokens.size());
+    std::string bytes;
+    auto flush = [&] {
+      if (bytes.empty()) return;
+      if (find_invalid_utf8(bytes) == std::string_view::npos) {
+        out.push_back(bytes);
+      } else {
+        for (std::size_t k = 0; k < bytes.size(); ++k) out.emplace_back("\xEF\xBF\xBD");
+      }
+      bytes.clear();
+    };
+    for (std::string& t : tokens) {
+      if (const int b = byte_of(t); b >= 0) {
+        bytes.push_back(static_cast<char>(b));
+        continue;
+      }
+      flush();
+      out.push_back(std::move(t));
+    }
+    flush();
+    return out;
+  }
+
+ private:
+  static int hex(char c) {
+    if (c >= '0' && c <= '9') return c - '0';
+    if (c >= 'a' && c <= 'f') return c - 'a' + 10;
+    if (c >= 'A' && c <= 'F') return c - 'A' + 10;
+    return -1;
+  }
+  // u8::from_str_radix(&token[3..5], 16) on a six-byte "<0x..>" token; -1 when it is not one.
+  static int byte_of(const std::string& t) {
+    if (t.size() != 6 || t.compare(0, 3, "<0x") != 0 || t[5] != '>') return -1;
+    const int hi = hex(t[3]), lo = hex(t[4]);
+    if (t[3] == '+' && lo >= 0) return lo;  // Rust's parser accepts a leading '+'
+    return hi >= 0 && lo >= 0 ? hi * 16 + lo : -1;
+  }
+};
+
+// All tokens joined into one.
+class FuseDecoder final : public Decoder {
+ public:
+  std::vector<std::string> decode_chain(std::vector<std::string> tokens) const override {
+    std::string out;
+    for (const std::string& t : tokens) out += t;
+    return {out};
+  }
+};
+
+// Up to `start` leading and `stop` trailing occurrences of one character removed from each token.
+class StripDecoder final : public Decoder {
+ public:
+  StripDecoder(std::string content, std::size_t start, std::size_t stop)
+      : content_(std::move(content)), start_(start), stop_(stop) {}
+  std::vector<std::string> decode_chain(std::vector<std::string> tokens) const override {
+    for (std::string& t : tokens) {
+      std::vector<std::size_t> offsets;  // start of each character, then the end
+      for (std::size_t i = 0; i < t.size(); i += utf8_len(static_cast<unsigned char>(t[i])))
+        offsets.push_back(i);
+      const std::size_t n = offsets.size();
+      offsets.push_back(t.size());
+      auto is_content = [&](std::size_t k) {
+        return t.compare(offsets[k], offsets[k + 1] - offsets[k], content_) == 0;
+      };
+      std::size_t first = 0, last = n;
+      for (std::size_t k = 0; k < std::min(start_, n) && is_content(k); ++k) first = k + 1;
+      for (std::size_t k = 0; k < std::min(stop_, n) && is_content(n - 1 - k); ++k)
+        last = n - 1 - k;
+      t = first < last ? t.substr(offsets[first], offsets[last] - offsets[first]) : std::string();
+    }
+    return tokens;
+  }
+
+ private:
+  std::string content_;
+  std::size_t start_, stop_;
 };
 
 }  // namespace
@@ -551,10 +674,40 @@ std::unique_ptr<PostProcessor> make_post_processor(const Json& j, const std::str
               where + ": post-processor type '" + type + "' is not supported");
 }
 
+std::string Decoder::decode(std::vector<std::string> tokens) const {
+  std::string out;
+  for (const std::string& t : decode_chain(std::move(tokens))) out += t;
+  return out;
+}
+
 std::unique_ptr<Decoder> make_decoder(const Json& j, const std::string& where) {
   if (j.is_null()) return nullptr;
   const std::string type = type_of(j, where);
   if (type == "ByteLevel") return std::make_unique<ByteLevelDecoder>();
+  if (type == "Sequence") {
+    const Json& list = array_field(j, "decoders", where);
+    std::vector<std::unique_ptr<Decoder>> parts;
+    for (std::size_t k = 0; k < list.size(); ++k) {
+      const std::string w = where + ".decoders[" + std::to_string(k) + "]";
+      if (list[k].is_null()) throw Error(ErrorCode::format, w + " is null");
+      parts.push_back(make_decoder(list[k], w));
+    }
+    return std::make_unique<SequenceDecoder>(std::move(parts));
+  }
+  if (type == "Replace")
+    return std::make_unique<ReplaceDecoder>(make_pattern(j, where),
+                                            json_get<std::string>(j, "content", where));
+  if (type == "ByteFallback") return std::make_unique<ByteFallbackDecoder>();
+  if (type == "Fuse") return std::make_unique<FuseDecoder>();
+  if (type == "Strip") {
+    const auto content = json_get<std::string>(j, "content", where);
+    std::size_t n = 0;
+    if (content.empty() || find_invalid_utf8(content) != std::string_view::npos ||
+        (decode_utf8(content, 0, n), n != content.size()))
+      throw Error(ErrorCode::format, where + ".content must be a single character");
+    return std::make_unique<StripDecoder>(content, json_get<std::size_t>(j, "start", where),
+                                          json_get<std::size_t>(j, "stop", where));
+  }
   throw Error(ErrorCode::unsupported, where + ": decoder type '" + type + "' is not supported");
 }
 

@@ -43,7 +43,10 @@ std::unique_ptr<PostProcessor> make_post_processor(const Json& j, const std::str
 class Decoder {
  public:
   virtual ~Decoder() = default;
-  virtual std::string decode(const std::vector<std::string>& tokens) const = 0;
+  // The crate's decode_chain: each decoder maps the token strings to new ones (a Sequence feeds
+  // them from one decoder to the next); the decoded text is their concatenation.
+  virtual std::vector<std::string> decode_chain(std::vector<std::string> tokens) const = 0;
+  std::string decode(std::vector<std::string> tokens) const;
 };
 std::unique_ptr<Decoder> make_decoder(const Json& j, const std::string& where);
 

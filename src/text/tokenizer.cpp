@@ -3,6 +3,7 @@
 #include "text/tokenizer.h"
 
 #include <algorithm>
+#include <filesystem>
 #include <fstream>
 #include <unordered_set>
 
@@ -11,6 +12,7 @@
 #include "text/added_vocabulary.h"
 #include "text/bpe.h"
 #include "text/pipeline.h"
+#include "text/sentencepiece_model.h"
 #include "text/unicode.h"
 
 namespace tether::text {
@@ -46,8 +48,9 @@ struct TokenizerImpl {
   // Ids of `text` before truncation and post-processing.
   std::vector<int32_t> tokenize(std::string_view text) const {
     if (const std::size_t bad = find_invalid_utf8(text); bad != std::string_view::npos)
-      throw Error(ErrorCode::invalid_argument,
-                  "text to tokenize is not valid UTF-8 (byte " + std::to_string(bad) + ")");
+      throw Error(
+          ErrorCode::invalid_argument,
+          where + ": text to tokenize is not valid UTF-8 (byte " + std::to_string(bad) + ")");
     std::vector<Piece> pieces =
         added->extract_and_normalize(text, [this](std::string_view s) { return normalize(s); });
     if (pre_tokenizer) pre_tokenizer->pre_tokenize(pieces);
@@ -145,8 +148,11 @@ std::optional<PaddingConfig> parse_padding(const Json& j, const std::string& whe
 
 // How the pipeline deviates from the file (transformers class rebuilds, extra added tokens).
 struct BuildOptions {
-  bool gpt2_class = false;  // transformers' GPT2Tokenizer: ByteLevel only, BPE options reset
-  bool add_prefix_space = false;
+  // transformers classes whose constructor builds the pipeline around the file's vocabulary:
+  // GPT2Tokenizer (ByteLevel only, BPE options reset) and GemmaTokenizer (SentencePiece-style BPE).
+  enum class Rebuild { none, gpt2, gemma } rebuild = Rebuild::none;
+  bool add_prefix_space = false;                 // GPT2Tokenizer's ByteLevel option
+  std::string unk_token;                         // GemmaTokenizer's BPE unk_token
   std::optional<std::vector<AddedToken>> added;  // replaces the file's added_tokens
   std::vector<AddedToken> extra;                 // registered after them
 };
@@ -168,16 +174,43 @@ std::shared_ptr<TokenizerImpl> build(const Json& root, const std::string& where,
   };
   const Json& model = field("model");
   if (model.is_null()) throw Error(ErrorCode::not_found, where + ": missing field 'model'");
-  if (opt.gpt2_class) {
-    // The class builds BPE(vocab, merges) with default options and its own stages around it.
+  // The rebuilding classes keep only the file's vocabulary and merges.
+  auto rebuilt_model = [&]() {
     Json rebuilt = Json::object();
     for (const char* key : {"type", "vocab", "merges"})
       if (model.is_object() && model.contains(key)) rebuilt[key] = model[key];
-    impl->model = std::make_unique<BpeModel>(rebuilt, where);
+    return rebuilt;
+  };
+  if (opt.rebuild == BuildOptions::Rebuild::gpt2) {
+    // The class builds BPE(vocab, merges) with default options and its own stages around it.
+    impl->model = std::make_unique<BpeModel>(rebuilt_model(), where);
     const Json byte_level = {
         {"type", "ByteLevel"}, {"add_prefix_space", opt.add_prefix_space}, {"use_regex", true}};
     impl->pre_tokenizer = make_pre_tokenizer(byte_level, where + ": GPT2Tokenizer pre_tokenizer");
     impl->decoder = make_decoder(byte_level, where + ": GPT2Tokenizer decoder");
+  } else if (opt.rebuild == BuildOptions::Rebuild::gemma) {
+    // GemmaTokenizer.__init__ (transformers 5.x): BPE(vocab, merges, fuse_unk=True,
+    // unk_token, byte_fallback=True), spaces replaced by U+2581 before a split on spaces (which so
+    // finds none), and the SentencePiece decoder.
+    Json bpe = rebuilt_model();
+    bpe["fuse_unk"] = true;
+    bpe["byte_fallback"] = true;
+    bpe["unk_token"] = opt.unk_token;
+    impl->model = std::make_unique<BpeModel>(bpe, where);
+    const Json space = {{"String", " "}}, marker = {{"String", "\xE2\x96\x81"}};
+    impl->normalizer =
+        make_normalizer({{"type", "Replace"}, {"pattern", space}, {"content", "\xE2\x96\x81"}},
+                        where + ": GemmaTokenizer normalizer");
+    impl->pre_tokenizer = make_pre_tokenizer({{"type", "Split"},
+                                              {"pattern", space},
+                                              {"behavior", "MergedWithPrevious"},
+                                              {"invert", false}},
+                                             where + ": GemmaTokenizer pre_tokenizer");
+    impl->decoder = make_decoder(
+        {{"type", "Sequence"},
+         {"decoders", Json::array({Json{{"type", "Replace"}, {"pattern", marker}, {"content", " "}},
+                                   Json{{"type", "ByteFallback"}}, Json{{"type", "Fuse"}}})}},
+        where + ": GemmaTokenizer decoder");
   } else {
     impl->model = std::make_unique<BpeModel>(model, where);
     impl->normalizer = make_normalizer(field("normalizer"), where + ": normalizer");
@@ -245,24 +278,67 @@ std::optional<AddedToken> config_token(const Json& v, const std::string& where) 
   return t;
 }
 
-std::string side(const Json& config, const char* key, const std::string& where) {
-  const auto v = json_get_or<std::string>(config, key, "right", where);
+std::string side(const Json& config, const char* key, const char* fallback,
+                 const std::string& where) {
+  const auto v = json_get_or<std::string>(config, key, fallback, where);
   if (v != "left" && v != "right")
     throw Error(ErrorCode::format, where + ": " + key + " '" + v + "' is neither left nor right");
   return v;
 }
 
+// The tokenizer.json-shaped object transformers' GemmaTokenizer builds from a SentencePiece model
+// (SentencePieceExtractor.extract in convert_slow_tokenizer.py): the pieces as the BPE vocabulary,
+// merges from generate_merges, and the control and user-defined pieces as added tokens (control
+// ones special), none of them normalized.
+Json json_from_sentencepiece(const SentencePieceModel& m, std::vector<AddedToken>& added) {
+  Json vocab = Json::object();
+  for (std::size_t k = 0; k < m.pieces.size(); ++k) vocab[m.pieces[k].piece] = k;
+  Json merges = Json::array();
+  for (auto& [left, right] : generate_merges(m.pieces))
+    merges.push_back(Json::array({std::move(left), std::move(right)}));
+  for (const SentencePiece& p : m.pieces) {
+    if (p.type != SentencePiece::control && p.type != SentencePiece::user_defined) continue;
+    AddedToken t;
+    t.content = p.piece;
+    t.normalized = false;
+    t.special = p.type == SentencePiece::control;
+    added.push_back(std::move(t));
+  }
+  Json root = Json::object();
+  root["version"] = "1.0";
+  root["model"] = {{"type", "BPE"}, {"vocab", std::move(vocab)}, {"merges", std::move(merges)}};
+  return root;
+}
+
+// transformers' update_post_processor: "[bos] $A [eos]" as add_bos_token / add_eos_token ask.
+Json bos_eos_template(const std::optional<std::pair<std::string, int32_t>>& bos,
+                      const std::optional<std::pair<std::string, int32_t>>& eos) {
+  Json single = Json::array(), special = Json::object();
+  auto add = [&](const std::pair<std::string, int32_t>& t) {
+    single.push_back({{"SpecialToken", {{"id", t.first}, {"type_id", 0}}}});
+    special[t.first] = {
+        {"id", t.first}, {"ids", Json::array({t.second})}, {"tokens", Json::array({t.first})}};
+  };
+  if (bos) add(*bos);
+  single.push_back({{"Sequence", {{"id", "A"}, {"type_id", 0}}}});
+  if (eos) add(*eos);
+  return {{"type", "TemplateProcessing"}, {"single", single}, {"special_tokens", special}};
+}
+
 }  // namespace
 
 PretrainedTokenizer load_pretrained_tokenizer(const std::string& dir) {
+  namespace fs = std::filesystem;
   const std::string json_path = dir + "/tokenizer.json";
+  const std::string model_path = dir + "/tokenizer.model";
   const std::string config_path = dir + "/tokenizer_config.json";
-  const Json root = read_json_file<Json>(json_path);
+  std::error_code ec;
+  const bool has_json = fs::exists(json_path, ec), has_model = fs::exists(model_path, ec);
+  if (!has_json && !has_model)
+    throw Error(ErrorCode::not_found,
+                dir + ": no tokenizer.json or tokenizer.model (" + json_path + " not found)");
   Json config = Json::object();
-  {
-    std::ifstream probe(config_path);
-    if (probe) config = read_json_file<Json>(config_path);
-  }
+  if (fs::exists(config_path, ec)) config = read_json_file<Json>(config_path);
   if (!config.is_object())
     throw Error(ErrorCode::format, config_path + ": top level is not an object");
 
@@ -272,13 +348,74 @@ PretrainedTokenizer load_pretrained_tokenizer(const std::string& dir) {
   if (base.size() > 4 && base.compare(base.size() - 4, 4, "Fast") == 0 &&
       base != "PreTrainedTokenizerFast")
     base.resize(base.size() - 4);
+  const bool gemma = base == "GemmaTokenizer";
   if (base == "GPT2Tokenizer") {
-    opt.gpt2_class = true;
+    opt.rebuild = BuildOptions::Rebuild::gpt2;
     opt.add_prefix_space = json_get_or<bool>(config, "add_prefix_space", false, config_path);
+  } else if (gemma) {
+    opt.rebuild = BuildOptions::Rebuild::gemma;
   } else if (!(base.empty() || base == "PreTrainedTokenizerFast" || base == "TokenizersBackend")) {
     throw Error(ErrorCode::unsupported,
                 config_path + ": tokenizer_class '" + cls +
                     "' is not supported (transformers rebuilds it in a class-specific way)");
+  }
+  // Without tokenizer.json transformers converts tokenizer.model in a class-specific way; Tether
+  // follows GemmaTokenizer's conversion only.
+  if (!has_json && !gemma)
+    throw Error(ErrorCode::unsupported,
+                model_path +
+                    ": a SentencePiece model without tokenizer.json is only supported for " +
+                    "tokenizer_class GemmaTokenizer (" +
+                    (cls.empty() ? "no tokenizer_class in " + config_path
+                                 : "tokenizer_class is '" + cls + "'") +
+                    ")");
+  const std::string source = has_json ? json_path : model_path;
+  std::vector<AddedToken> spm_added;
+  const Json root = has_json
+                        ? read_json_file<Json>(json_path)
+                        : json_from_sentencepiece(read_sentencepiece_model(model_path), spm_added);
+
+  // Named special tokens: the config's, else the class defaults (GemmaTokenizer.__init__'s).
+  std::vector<std::pair<std::string, AddedToken>> named;
+  for (const char* key : {"bos_token", "eos_token", "unk_token", "sep_token", "pad_token",
+                          "cls_token", "mask_token"}) {
+    if (auto it = config.find(key); it != config.end()) {
+      if (auto t = config_token(*it, config_path + ": " + key)) named.emplace_back(key, *t);
+      continue;
+    }
+    if (!gemma) continue;
+    static const std::pair<const char*, const char*> kGemmaDefaults[] = {{"bos_token", "<bos>"},
+                                                                         {"eos_token", "<eos>"},
+                                                                         {"unk_token", "<unk>"},
+                                                                         {"pad_token", "<pad>"},
+                                                                         {"mask_token", "<mask>"}};
+    for (const auto& [k, content] : kGemmaDefaults)
+      if (std::string(k) == key) named.emplace_back(key, *config_token(Json(content), key));
+  }
+  const std::size_t n_named = named.size();
+  // transformers 5 reads additional_special_tokens as extra_special_tokens.
+  auto extra_it = config.find("extra_special_tokens");
+  std::string extra_key = "extra_special_tokens";
+  if (extra_it == config.end() || extra_it->is_null()) {
+    extra_it = config.find("additional_special_tokens");
+    extra_key = "additional_special_tokens";
+  }
+  if (extra_it != config.end() && !extra_it->is_null()) {
+    if (extra_it->is_array()) {
+      for (std::size_t k = 0; k < extra_it->size(); ++k)
+        if (auto t = config_token((*extra_it)[k],
+                                  config_path + ": " + extra_key + "[" + std::to_string(k) + "]"))
+          named.emplace_back("", *t);
+    } else if (extra_it->is_object()) {
+      for (auto e = extra_it->begin(); e != extra_it->end(); ++e)
+        if (auto t = config_token(*e, config_path + ": " + extra_key + "." + e.key()))
+          named.emplace_back("", *t);
+    }
+  }
+  if (gemma) {
+    opt.unk_token = "<unk>";
+    for (std::size_t k = 0; k < n_named; ++k)
+      if (named[k].first == "unk_token") opt.unk_token = named[k].second.content;
   }
 
   // Added tokens: the config's added_tokens_decoder when present (transformers prefers it), in id
@@ -301,13 +438,22 @@ PretrainedTokenizer load_pretrained_tokenizer(const std::string& dir) {
     }
     std::stable_sort(by_id.begin(), by_id.end(),
                      [](const auto& a, const auto& b) { return a.first < b.first; });
-    if (opt.gpt2_class) {
+    if (opt.rebuild != BuildOptions::Rebuild::none && has_json) {
+      // The rebuilt backend starts without the file's added tokens and takes these instead.
       std::vector<AddedToken> list;
       for (auto& [id, t] : by_id) list.push_back(std::move(t));
       opt.added = std::move(list);
     } else {
       for (auto& [id, t] : by_id) added.push_back(std::move(t));
     }
+  }
+  if (!has_json) {
+    // The converted model's control and user-defined pieces, then the config's tokens. The named
+    // and extra special tokens are registered again as special, which marks those pieces special.
+    for (AddedToken& t : spm_added)
+      for (const auto& [key, n] : named)
+        if (n.content == t.content) t.special = true;
+    opt.added = std::move(spm_added);
   }
   std::vector<std::string> known;
   auto remember = [&](const std::vector<AddedToken>& list) {
@@ -322,24 +468,6 @@ PretrainedTokenizer load_pretrained_tokenizer(const std::string& dir) {
   }
   remember(added);
   opt.extra = std::move(added);
-  std::vector<std::pair<std::string, AddedToken>> named;
-  for (const char* key : {"bos_token", "eos_token", "unk_token", "sep_token", "pad_token",
-                          "cls_token", "mask_token"}) {
-    if (auto it = config.find(key); it != config.end())
-      if (auto t = config_token(*it, config_path + ": " + key)) named.emplace_back(key, *t);
-  }
-  if (auto it = config.find("extra_special_tokens"); it != config.end() && !it->is_null()) {
-    if (it->is_array()) {
-      for (std::size_t k = 0; k < it->size(); ++k)
-        if (auto t = config_token(
-                (*it)[k], config_path + ": extra_special_tokens[" + std::to_string(k) + "]"))
-          named.emplace_back("", *t);
-    } else if (it->is_object()) {
-      for (auto e = it->begin(); e != it->end(); ++e)
-        if (auto t = config_token(*e, config_path + ": extra_special_tokens." + e.key()))
-          named.emplace_back("", *t);
-    }
-  }
   for (const auto& [key, t] : named) {
     if (std::find(known.begin(), known.end(), t.content) == known.end()) {
       opt.extra.push_back(t);
@@ -347,15 +475,40 @@ PretrainedTokenizer load_pretrained_tokenizer(const std::string& dir) {
     }
   }
 
-  Tokenizer tok(build(root, json_path, opt));
-  PretrainedTokenizer out{tok, cls, BatchOptions{}, std::nullopt, std::nullopt, std::nullopt};
-  out.defaults.truncate_right = side(config, "truncation_side", config_path) == "right";
-  out.defaults.pad_right = side(config, "padding_side", config_path) == "right";
+  std::shared_ptr<TokenizerImpl> impl = build(root, source, opt);
   auto id_of = [&](const char* key) -> std::optional<int32_t> {
-    for (const auto& [k, t] : named)
-      if (k == key) return tok.token_to_id(t.content);
+    for (std::size_t k = 0; k < n_named; ++k) {
+      if (named[k].first != key) continue;
+      const std::string& content = named[k].second.content;
+      if (auto id = impl->added->token_to_id(content)) return id;
+      return impl->model->token_to_id(content);
+    }
     return std::nullopt;
   };
+  if (!has_json) {
+    // No post-processor in the file: transformers builds one from add_bos_token / add_eos_token
+    // (both false when absent). With tokenizer.json it drops those flags and keeps the file's.
+    auto flagged = [&](const char* flag,
+                       const char* key) -> std::optional<std::pair<std::string, int32_t>> {
+      if (!json_get_or<bool>(config, flag, false, config_path)) return std::nullopt;
+      for (std::size_t k = 0; k < n_named; ++k)
+        if (named[k].first == key)
+          if (auto id = id_of(key)) return std::make_pair(named[k].second.content, *id);
+      return std::nullopt;  // no such token: transformers turns the flag off
+    };
+    impl->post_processor =
+        make_post_processor(bos_eos_template(flagged("add_bos_token", "bos_token"),
+                                             flagged("add_eos_token", "eos_token")),
+                            config_path + ": add_bos_token/add_eos_token template");
+  }
+
+  Tokenizer tok(impl);
+  PretrainedTokenizer out{tok,          cls,          BatchOptions{}, std::nullopt,
+                          std::nullopt, std::nullopt, source};
+  out.defaults.truncate_right = side(config, "truncation_side", "right", config_path) == "right";
+  // GemmaTokenizer's class attribute is padding_side = "left"; the base class's is "right".
+  out.defaults.pad_right =
+      side(config, "padding_side", gemma ? "left" : "right", config_path) == "right";
   out.bos_token_id = id_of("bos_token");
   out.eos_token_id = id_of("eos_token");
   out.pad_token_id = id_of("pad_token");
@@ -401,7 +554,7 @@ std::string Tokenizer::decode(const std::vector<int32_t>& ids, bool skip_special
     if (skip_special_tokens && t.added->is_special(*token)) continue;
     tokens.push_back(*token);
   }
-  if (t.decoder) return t.decoder->decode(tokens);
+  if (t.decoder) return t.decoder->decode(std::move(tokens));
   std::string out;
   for (std::size_t k = 0; k < tokens.size(); ++k) {
     if (k) out += ' ';

@@ -1,5 +1,6 @@
-// Byte-level BPE tokenizer loaded from a Hugging Face `tokenizer.json`, reproducing the Rust
-// `tokenizers` package id for id, plus transformers-style batch padding/truncation.
+// BPE tokenizer loaded from a Hugging Face `tokenizer.json` (byte-level or SentencePiece-style with
+// byte fallback), reproducing the Rust `tokenizers` package id for id, plus transformers-style
+// class rebuilds, SentencePiece-model conversion and batch padding/truncation.
 #pragma once
 
 #include <cstdint>
@@ -26,8 +27,9 @@ class Tokenizer {
   // `where` names the source in error messages (normally the file path).
   static Tokenizer from_json_string(std::string_view json, const std::string& where);
 
-  // Throws ErrorCode::invalid_argument when `text` is not valid UTF-8. Applies the truncation and
-  // padding settings stored in the file, as `tokenizers.Tokenizer.encode` does.
+  // Throws ErrorCode::invalid_argument (naming the tokenizer's file) when `text` is not valid
+  // UTF-8. Applies the truncation and padding settings stored in the file, as
+  // `tokenizers.Tokenizer.encode` does.
   std::vector<int32_t> encode(std::string_view text, bool add_special_tokens = true) const;
   // Ids unknown to the vocabulary are skipped, as the Rust crate does.
   std::string decode(const std::vector<int32_t>& ids, bool skip_special_tokens = false) const;
@@ -75,23 +77,37 @@ BatchEncoding encode_batch(const Tokenizer& tokenizer, const std::vector<std::st
                            const BatchOptions& options, bool add_special_tokens = true);
 
 // A checkpoint's tokenizer as transformers 5.x AutoTokenizer builds it from <dir>/tokenizer.json
-// and <dir>/tokenizer_config.json, which is not always what tokenizer.json alone describes:
+// (or, without it, <dir>/tokenizer.model) and <dir>/tokenizer_config.json, which is not always what
+// tokenizer.json alone describes:
 //  - tokenizer_class "GPT2Tokenizer" (SmolVLM, SmolLM2) rebuilds the pipeline: the file's
-//  normalizer
-//    and pre-tokenizer are dropped for ByteLevel(add_prefix_space from the config) — so no Digits
-//    split — and the BPE options reset; vocabulary, merges, added tokens and post-processor stay.
+//    normalizer and pre-tokenizer are dropped for ByteLevel(add_prefix_space from the config) — so
+//    no Digits split — and the BPE options reset; vocabulary, merges, added tokens and
+//    post-processor stay.
+//  - "GemmaTokenizer" (PaliGemma, so pi0 / pi0.5) rebuilds it too: BPE with byte_fallback,
+//    fuse_unk and the config's unk_token, normalizer Replace(" " -> U+2581), pre-tokenizer
+//    Split(" ", MergedWithPrevious), decoder Replace/ByteFallback/Fuse; the file's vocabulary,
+//    merges, added tokens, post-processor, truncation and padding stay. Its padding side defaults
+//    to "left" (the class attribute) when the config names none.
 //  - "PreTrainedTokenizerFast" / "TokenizersBackend" or no tokenizer_config.json: the file as is.
 //  - any other class: ErrorCode::unsupported (transformers would rebuild it in its own way).
-// Named special tokens of the config (bos/eos/unk/sep/pad/cls/mask) missing from the added tokens
-// are added as special tokens, as transformers does; add_bos_token / add_eos_token are ignored, as
-// transformers drops them whenever tokenizer.json exists. Only the tokenizer_class route is
-// followed: the shortcut transformers takes for model types it maps to another class is not
-// (SmolVLM's "smolvlm" type is not mapped, so this is its real route).
+// A directory with tokenizer.model and no tokenizer.json is converted as transformers'
+// GemmaTokenizer does it (vocabulary = the pieces, merges from generate_merges, control and
+// user-defined pieces as added tokens, the post-processor from add_bos_token / add_eos_token);
+// for any other class it is ErrorCode::unsupported.
+// Named special tokens of the config (bos/eos/unk/sep/pad/cls/mask, GemmaTokenizer's defaults when
+// absent) missing from the added tokens are added as special tokens, as transformers does;
+// add_bos_token / add_eos_token are ignored when tokenizer.json exists, as transformers drops them
+// then. Only the tokenizer_class route is followed: the shortcut transformers takes for model
+// types it maps to another class is not (SmolVLM's "smolvlm" and PaliGemma's "paligemma" types are
+// not mapped, so this is their real route).
+// Errors name the file: ErrorCode::not_found when neither tokenizer file exists, format for a
+// corrupt tokenizer.json / tokenizer.model / tokenizer_config.json, unsupported as above.
 struct PretrainedTokenizer {
   Tokenizer tokenizer;
   std::string tokenizer_class;  // "" without tokenizer_config.json
   BatchOptions defaults;        // padding/truncation side and pad id from the config; max_length 0
   std::optional<int32_t> bos_token_id, eos_token_id, pad_token_id;
+  std::string source;  // the file the vocabulary came from: <dir>/tokenizer.json or tokenizer.model
 };
 PretrainedTokenizer load_pretrained_tokenizer(const std::string& dir);
 

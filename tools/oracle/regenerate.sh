@@ -5,7 +5,7 @@ here="$(cd "$(dirname "${BASH_SOURCE[0]}")" && pwd)"
 root="$(cd "$here/../.." && pwd)"
 "$here/setup.sh"
 # optional generators owned by the text and vision layers; run whichever exist
-for gen in tokenizer_fixtures.py vision_fixtures.py; do
+for gen in tokenizer_fixtures.py paligemma_tokenizer_fixtures.py vision_fixtures.py; do
   if [[ -f "$here/$gen" ]]; then
     echo "== $gen"
     "$here/run.sh" "$here/$gen"
