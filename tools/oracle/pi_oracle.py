@@ -445,12 +445,12 @@ INSTR_TRUNC = (
     "First look at the table, find the 4 green cups and the 12 red plates; then put every cup on a plate, "
     "starting with the one nearest to the left edge, and finally push the tray 25 cm forward."
 )
-INSTR_UNDERSCORE = "open_the_drawer and\nput the sponge inside"  # pi0.5 rewrites "_" and "\n" to spaces
+INSTR_UNDERSCORE = " open_the_drawer and\nput the sponge inside\n"  # pi0.5 strips, then rewrites "_" and "\n" to " "
 
 CAM1 = [("observation.images.camera1", (96, 128), "png")]
 CAM3 = [
     ("observation.images.camera1", (96, 128), "png"),
-    ("observation.images.camera2", (60, 44), "jpg"),
+    ("observation.images.camera2", (58, 44), "jpg"),
     ("observation.images.camera3", (56, 56), "png"),
 ]
 
@@ -490,8 +490,9 @@ PI0_CASES = {
     "cam3_nostats_trunc": dict(
         COMMON,
         desc=(
-            "3 cameras (96x128 PNG, 60x44 portrait JPEG, 56x56 PNG = model size), state/action 7, no stats "
-            "(identity), item 1's instruction is longer than tokenizer_max_length 48 and is truncated"
+            "3 cameras (96x128 PNG, 58x44 portrait JPEG, 56x56 PNG = model size; upstream's int(58 / (58 / 56)) "
+            "is 55, so camera2 becomes 55x42 with padding 0 top, 1 bottom, 7 left, 7 right), state/action 7, "
+            "no stats (identity), item 1's instruction is longer than tokenizer_max_length 48 and is truncated"
         ),
         seed=2000,
         cameras=CAM3,
@@ -575,8 +576,8 @@ PI05_CASES = {
     "cam3_nostats_trunc": dict(
         COMMON,
         desc=(
-            "3 cameras (96x128 PNG, 60x44 portrait JPEG, 56x56 PNG), state/action 7, no stats: the raw state is "
-            "discretised as is; tokenizer_max_length 40 so item 1's prompt (long instruction + state) is truncated"
+            "3 cameras (96x128 PNG, 58x44 portrait JPEG resized to 55x42 by int() truncation, 56x56 PNG), "
+            "state/action 7, no stats: the raw state is discretised as is; tokenizer_max_length 40 so item 1's prompt (long instruction + state) is truncated"
         ),
         seed=2100,
         cameras=CAM3,
