@@ -19,5 +19,12 @@ echo "== tokenizer Unicode coverage (reads the tokenizer fixtures and the smolvl
 "$here/run.sh" "$here/unicode_fixtures.py"
 echo "== real-time chunking fixture (reads the smolvla cam1_stats case)"
 "$here/run.sh" "$here/rtc_oracle.py" --out "$root/tests/fixtures/smolvla_rtc"
+echo "== pi0 / pi0.5 fixtures (the stand-in PaliGemma tokenizer's hub cache first)"
+"$here/run.sh" "$here/pi_oracle.py" tokenizer
+"$here/run.sh" "$here/pi_oracle.py" fixtures --family pi0
+"$here/run.sh" "$here/pi_oracle.py" fixtures --family pi05
+echo "== pi0 / pi0.5 real-time chunking fixtures (read the pi0 cam1_stats and pi05 cam1_quantiles_bins cases)"
+"$here/run.sh" "$here/pi_rtc_oracle.py" --family pi0
+"$here/run.sh" "$here/pi_rtc_oracle.py" --family pi05
 echo "== demo policy"
 "$here/run.sh" "$here/smolvla_oracle.py" demo --out "$root/models/demo"
