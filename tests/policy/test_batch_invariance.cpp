@@ -23,7 +23,7 @@ namespace {
 const std::vector<std::string>& checkpoints() {
   static const std::vector<std::string> all = [] {
     std::vector<std::string> out = {std::string(TETHER_SOURCE_DIR) + "/models/demo/smolvla-demo"};
-    for (const char* c : {"pi0/cam3_stats", "pi05/cam3_stats"}) {
+    for (const char* c : {"pi0/cam3_nostats_trunc", "pi05/cam3_nostats_trunc"}) {
       const std::filesystem::path dir = std::filesystem::path(TETHER_FIXTURES_DIR) / c / "checkpoint";
       if (std::filesystem::exists(dir)) out.push_back(dir.string());
     }

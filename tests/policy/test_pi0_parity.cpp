@@ -154,18 +154,21 @@ TEST_P(PiParity, MatchesUpstream) {
   ASSERT_TRUE(captured.count("out.actions_normalized"));
 }
 
-// bf16 is a reduced-precision mode: its error against upstream fp32 is measured and bounded, not hidden.
-TEST_P(PiParity, Bf16ErrorIsBounded) {
+// bf16 and fp16 are reduced-precision modes: their error against upstream fp32 is measured and bounded, not hidden.
+void expect_half_precision_bounded(const std::string& name, cpu::Precision precision) {
   const SafeTensorsFile oracle =
-      SafeTensorsFile::open((fs::path(TETHER_FIXTURES_DIR) / GetParam() / "oracle.safetensors").string());
-  const auto captured = run_case(GetParam(), cpu::Precision::bf16);
+      SafeTensorsFile::open((fs::path(TETHER_FIXTURES_DIR) / name / "oracle.safetensors").string());
+  const auto captured = run_case(name, precision);
   const std::vector<float> want = oracle.get("out.actions_normalized").to_f32();
   const double diff = max_abs_diff(captured.at("out.actions_normalized").values, want);
-  std::printf("  [%s] bf16 out.actions_normalized max |diff| %.3e (max |value| %.3f)\n", GetParam().c_str(), diff,
-              max_abs(want));
+  std::printf("  [%s] %s out.actions_normalized max |diff| %.3e (max |value| %.3f)\n", name.c_str(),
+              cpu::precision_name(precision), diff, max_abs(want));
   EXPECT_LT(diff, 0.05 * std::max(1.0, max_abs(want)));
-  EXPECT_GT(diff, 0.0) << "bf16 mode gave exactly the fp32 result: is it running at all?";
+  EXPECT_GT(diff, 0.0) << "the reduced precision gave exactly the fp32 result: is it running at all?";
 }
+
+TEST_P(PiParity, Bf16ErrorIsBounded) { expect_half_precision_bounded(GetParam(), cpu::Precision::bf16); }
+TEST_P(PiParity, Fp16ErrorIsBounded) { expect_half_precision_bounded(GetParam(), cpu::Precision::fp16); }
 
 std::string test_name(const ::testing::TestParamInfo<std::string>& info) {
   std::string s = info.param;
