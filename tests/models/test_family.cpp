@@ -44,22 +44,28 @@ std::pair<ErrorCode, std::string> error_of(F f) {
 
 }  // namespace
 
-TEST(Families, RegistryKnowsSmolVLA) {
-  EXPECT_EQ(model_families(), std::vector<std::string>{"smolvla"});
+TEST(Families, RegistryKnowsEveryFamily) {
+  EXPECT_EQ(model_families(), (std::vector<std::string>{"smolvla", "pi0", "pi05"}));
   const FamilyDescriptor* f = find_family("smolvla");
   ASSERT_NE(f, nullptr);
   EXPECT_EQ(f->stages, (std::vector<std::string>{"preprocess", "vision", "prefix", "denoise"}));
   EXPECT_EQ(f->tokenizer, TokenizerKind::byte_level_bpe);
-  EXPECT_EQ(find_family("pi0"), nullptr);
+  EXPECT_EQ(find_family("gr00t"), nullptr);
   EXPECT_EQ(&recognise(fs::path(TETHER_FIXTURES_DIR) / "smolvla" / "cam1_stats" / "checkpoint"), f);
+  for (const char* name : {"pi0", "pi05"}) {
+    const FamilyDescriptor* pi = find_family(name);
+    ASSERT_NE(pi, nullptr) << name;
+    EXPECT_EQ(pi->tokenizer, TokenizerKind::sentencepiece);
+    EXPECT_EQ(&recognise(fs::path(TETHER_FIXTURES_DIR) / name / "cam3_nostats_trunc" / "checkpoint"), pi) << name;
+  }
 }
 
 TEST(Families, UnknownTypeIsAClearErrorListingTheKnownFamilies) {
   const fs::path d = scratch("unknown");
-  write_json(d / "config.json", {{"type", "pi0"}});
+  write_json(d / "config.json", {{"type", "act"}});
   auto [code, what] = error_of([&] { recognise(d); });
   EXPECT_EQ(code, ErrorCode::unsupported);
-  for (const char* part : {"config.json", "model type \"pi0\"", "not supported", "known families", "smolvla",
+  for (const char* part : {"config.json", "model type \"act\"", "not supported", "known families", "smolvla",
                            "\"type\": \"smolvla\""})
     EXPECT_NE(what.find(part), std::string::npos) << part << " in: " << what;
   // A config of another convention (GR00T-style "model_type") is named by what it does say.

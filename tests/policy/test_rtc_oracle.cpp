@@ -1,9 +1,11 @@
-// Real-time chunking against upstream: lerobot's SmolVLA with its RTCProcessor (tools/oracle/rtc_oracle.py) on the
-// cam1_stats checkpoint, for several delay/horizon/schedule/weight settings. Reports max |diff| per setting.
+// Real-time chunking against upstream: lerobot's SmolVLA, pi0 and pi0.5 with their RTCProcessor
+// (tools/oracle/rtc_oracle.py, pi_rtc_oracle.py) on one fixture checkpoint each, for several
+// delay/horizon/schedule/weight settings. Reports max |diff| per setting.
 #include <gtest/gtest.h>
 
 #include <cmath>
 #include <cstdio>
+#include <cstdlib>
 #include <filesystem>
 
 #include "core/safetensors.h"
@@ -14,8 +16,19 @@ namespace fs = std::filesystem;
 
 namespace {
 
-const fs::path kSource = fs::path(TETHER_FIXTURES_DIR) / "smolvla" / "cam1_stats";
-const fs::path kOracle = fs::path(TETHER_FIXTURES_DIR) / "smolvla_rtc" / "oracle.safetensors";
+// The RTC fixture and the parity case whose checkpoint and inputs it ran on.
+struct RtcFixture {
+  const char* rtc;
+  const char* source;
+};
+const RtcFixture kFixtures[] = {
+    {"smolvla_rtc", "smolvla/cam1_stats"}, {"pi0_rtc", "pi0/cam2_bf16"}, {"pi05_rtc", "pi05/cam2_bf16"}};
+
+// pi0's PaliGemma tokenizer: the oracle's stand-in, in a hub cache under its real repo id.
+const bool kHubCacheSet = [] {
+  ::setenv("HF_HUB_CACHE", (fs::path(TETHER_FIXTURES_DIR) / "paligemma_hub").c_str(), 1);
+  return true;
+}();
 
 double max_abs_diff(const std::vector<float>& a, const std::vector<float>& b) {
   double m = 0;
@@ -29,8 +42,12 @@ std::vector<float> slice(const std::vector<float>& all, int64_t b, int64_t per_i
 
 }  // namespace
 
-TEST(RtcOracle, MatchesLerobotsRtcProcessor) {
-  if (!fs::exists(kOracle)) GTEST_SKIP() << kOracle << " missing: tools/oracle/run.sh rtc_oracle.py";
+class RtcOracle : public ::testing::TestWithParam<RtcFixture> {};
+
+TEST_P(RtcOracle, MatchesLerobotsRtcProcessor) {
+  const fs::path kSource = fs::path(TETHER_FIXTURES_DIR) / GetParam().source;
+  const fs::path kOracle = fs::path(TETHER_FIXTURES_DIR) / GetParam().rtc / "oracle.safetensors";
+  ASSERT_TRUE(fs::exists(kOracle)) << kOracle << " missing: tools/oracle/regenerate.sh writes it";
   const SafeTensorsFile source = SafeTensorsFile::open((kSource / "oracle.safetensors").string());
   const SafeTensorsFile oracle = SafeTensorsFile::open(kOracle.string());
   auto policy = policy::Policy::load((kSource / "checkpoint").string());
@@ -62,7 +79,7 @@ TEST(RtcOracle, MatchesLerobotsRtcProcessor) {
 
   policy->predict(batch);
   const double plain = max_abs_diff(normalized, oracle.get("out.no_rtc.actions_normalized").to_f32());
-  std::printf("[ rtc oracle ] %-14s normalised max |diff| %.2e\n", "no RTC", plain);
+  std::printf("[ rtc oracle ] %s %-14s normalised max |diff| %.2e\n", GetParam().rtc, "no RTC", plain);
   EXPECT_LT(plain, 1e-5);
 
   for (const auto& c : Json::parse(oracle.metadata().at("cases"))) {
@@ -82,10 +99,13 @@ TEST(RtcOracle, MatchesLerobotsRtcProcessor) {
     for (float v : want) scale = std::max(scale, double(std::fabs(v)));
     const double norm_diff = max_abs_diff(normalized, oracle.get("out." + name + ".actions_normalized").to_f32());
     const double robot_diff = max_abs_diff(actions, want);
-    std::printf("[ rtc oracle ] %-14s normalised max |diff| %.2e, robot units %.2e (max |action| %.1f)\n",
-                name.c_str(), norm_diff, robot_diff, scale);
+    std::printf("[ rtc oracle ] %s %-14s normalised max |diff| %.2e, robot units %.2e (max |action| %.1f)\n",
+                GetParam().rtc, name.c_str(), norm_diff, robot_diff, scale);
     // The leftover goes robot units -> normalised through float32 stats, one rounding more than upstream's path.
     EXPECT_LT(norm_diff, 1e-5) << name;
     EXPECT_LT(robot_diff, 1e-5 * scale) << name;
   }
 }
+
+INSTANTIATE_TEST_SUITE_P(Families, RtcOracle, ::testing::ValuesIn(kFixtures),
+                         [](const auto& info) { return std::string(info.param.rtc); });

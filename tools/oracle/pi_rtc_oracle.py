@@ -1,6 +1,6 @@
 """Real-time chunking oracle for pi0 / pi0.5: upstream lerobot's RTCProcessor on a committed tiny checkpoint.
 
-Reads one case of tests/fixtures/pi0 (cam1_stats) or tests/fixtures/pi05 (cam1_quantiles_bins) without changing
+Reads one case of tests/fixtures/pi0 or tests/fixtures/pi05 (cam2_bf16 of each) without changing
 it (checkpoint, input images, state, instructions), loads it with the same replaced sizes as pi_oracle.py, runs
 upstream once without RTC for a previous chunk, then with RTC enabled (RTCConfig on the policy config,
 init_rtc_processor, other noise) towards that chunk's leftover through predict_action_chunk's
@@ -26,7 +26,9 @@ from lerobot.policies.rtc.configuration_rtc import RTCConfig
 from pi_oracle import CASES, FAMILIES, REPO_ROOT, load_checkpoint, make_batch
 from smolvla_oracle import decode_image, versions, write_safetensors
 
-SOURCE = {"pi0": "cam1_stats", "pi05": "cam1_quantiles_bins"}
+# Cases whose action statistics have no degenerate dimension: a client sends the leftover in robot units, and a
+# dimension whose std is 0 (or q01 == q99) cannot be mapped back to the normalised value upstream guides towards.
+SOURCE = {"pi0": "cam2_bf16", "pi05": "cam2_bf16"}
 EXECUTED = 2  # actions of the previous chunk already run; the rest is the leftover
 SETTINGS = [  # name, inference_delay, execution_horizon, schedule, max_guidance_weight
     ("linear_d2_h5", 2, 5, RTCAttentionSchedule.LINEAR, 10.0),

@@ -23,7 +23,7 @@ echo "== pi0 / pi0.5 fixtures (the stand-in PaliGemma tokenizer's hub cache firs
 "$here/run.sh" "$here/pi_oracle.py" tokenizer
 "$here/run.sh" "$here/pi_oracle.py" fixtures --family pi0
 "$here/run.sh" "$here/pi_oracle.py" fixtures --family pi05
-echo "== pi0 / pi0.5 real-time chunking fixtures (read the pi0 cam1_stats and pi05 cam1_quantiles_bins cases)"
+echo "== pi0 / pi0.5 real-time chunking fixtures (read the pi0 and pi05 cam2_bf16 cases)"
 "$here/run.sh" "$here/pi_rtc_oracle.py" --family pi0
 "$here/run.sh" "$here/pi_rtc_oracle.py" --family pi05
 echo "== demo policy"
