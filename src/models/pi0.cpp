@@ -554,6 +554,18 @@ void PiZero::build_prefix(const std::vector<ModelInput>& batch, ModelOutput& out
   prefix_masks(prefix_pad_, prefix_att_, B, Lp, host_mask_, host_pos_);
   be.upload(host_mask_.data(), B * Lp * Lp, prefix_mask_.at());
   be.upload(host_pos_.data(), B * Lp, prefix_pos_.at());
+  if (pi05_ && dumping()) {
+    // The normalised state and the bins the prompt carries.
+    std::vector<float> st;
+    std::vector<int64_t> bins;
+    for (const auto& item : batch)
+      for (float x : item.state) {
+        st.push_back(x);
+        bins.push_back(state_bin(x));
+      }
+    dump("pre.state", Tensor{DType::f32, {B, spec_.state_dim}, st.data(), nullptr});
+    dump("pre.state_bins", Tensor{DType::i64, {B, spec_.state_dim}, bins.data(), nullptr});
+  }
   if (!pi05_) {
     host_state_.assign(std::size_t(B * spec_.max_state_dim), 0.f);
     for (int64_t b = 0; b < B; ++b)
@@ -633,6 +645,12 @@ void PiZero::denoise_step(Ptr<const float> x_t, float time, Ptr<float> v) {
     be.activate(time_h_.at(), E, backend::Activation::silu);
     be.linear(*time_out_, time_h_.at(), 1, cond_.at());
     be.activate(cond_.at(), E, backend::Activation::silu);
+    if (dumping() && time == 1.0f) {  // the first step's conditioning, one row per item as upstream holds it
+      std::vector<float> c(static_cast<std::size_t>(E)), rows_out;
+      be.download(Ptr<const float>(cond_.at()), E, c.data());
+      for (int64_t b = 0; b < B; ++b) rows_out.insert(rows_out.end(), c.begin(), c.end());
+      dump("mid.adarms_cond.step0", Tensor{DType::f32, {B, E}, rows_out.data(), nullptr});
+    }
     const Conditioning cond{cond_.at(), 1, rows};
     be.linear(*action_in_, x_t, rows, suffix_x_.at());
     expert_.forward(be, suffix_x_.at(), B, C, cache_, suffix_base_, action_pos_.at(), action_mask_.at(), {}, {}, &cond);
