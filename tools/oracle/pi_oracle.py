@@ -1,7 +1,7 @@
 """Writes pi0 / pi0.5 checkpoints in lerobot's exact on-disk layout and runs the real upstream policies on them.
 
 Sub-commands:
-  tokenizer                                  the stand-in PaliGemma tokenizer as a hub cache (tests/fixtures/paligemma_hub)
+  tokenizer [--out DIR]                      the stand-in PaliGemma tokenizer as a hub cache (tests/fixtures/paligemma_hub)
   fixtures  --family pi0|pi05 [--out DIR] [--cases a,b]
                                              tiny checkpoints + oracle.safetensors per case (committed test data)
   full-size --family pi0|pi05 [--out DIR]    random-weight checkpoint with the real sizes (benchmarks, not committed)
@@ -35,6 +35,7 @@ os.environ["HF_HUB_CACHE"] = str(HUB_CACHE)
 
 import argparse  # noqa: E402
 import contextlib  # noqa: E402
+import copy  # noqa: E402
 import io  # noqa: E402
 import json  # noqa: E402
 import shutil  # noqa: E402
@@ -123,7 +124,9 @@ class Tiny:
             },
             "vision_config": {
                 **self.vision,
-                "upstream": dict(hidden_size=1152, num_hidden_layers=27, num_attention_heads=16, intermediate_size=4304, patch_size=14),
+                "upstream": dict(
+                    hidden_size=1152, num_hidden_layers=27, num_attention_heads=16, intermediate_size=4304, patch_size=14
+                ),
                 "image_size": "unchanged mechanism: upstream sets it from config.image_resolution",
             },
             "projection_dim": {
@@ -277,7 +280,9 @@ def make_stats(cfg, gen: np.random.Generator, *, degenerate_dim: bool, exact_dim
     return stats
 
 
-def build_checkpoint(fam: Family, ckpt: Path, cfg, *, seed: int, tiny: Tiny | None, stats: dict | None, file_dtype) -> None:
+def build_checkpoint(
+    fam: Family, ckpt: Path, cfg, *, seed: int, tiny: Tiny | None, stats: dict | None, file_dtype
+) -> None:
     """Upstream policy -> perturb constant tensors -> upstream save_pretrained for policy and both pipelines."""
     if ckpt.exists():
         shutil.rmtree(ckpt)
@@ -388,7 +393,7 @@ class Probes:
             out = orig_forward(*args, **kwargs)
             embeds = kwargs.get("inputs_embeds")
             if self.kv is None and embeds is not None and embeds[1] is None:
-                self.kv = [
+                self.kv = [  # [B, kv_heads, L, head_dim] -> [B, L, kv_heads, head_dim]
                     (layer.keys.detach().transpose(1, 2).contiguous(), layer.values.detach().transpose(1, 2).contiguous())
                     for layer in out[1].layers
                 ]
@@ -577,7 +582,8 @@ PI05_CASES = {
         COMMON,
         desc=(
             "3 cameras (96x128 PNG, 58x44 portrait JPEG resized to 55x42 by int() truncation, 56x56 PNG), "
-            "state/action 7, no stats: the raw state is discretised as is; tokenizer_max_length 40 so item 1's prompt (long instruction + state) is truncated"
+            "state/action 7, no stats: the raw state is discretised as is; tokenizer_max_length 40 so item 1's "
+            "prompt (long instruction + state) is truncated"
         ),
         seed=2100,
         cameras=CAM3,
@@ -924,12 +930,38 @@ def cmd_fixtures(args) -> None:
         print(f"wrote {d}")
 
 
-def count_params(fam: Family) -> int:
+def count_params(fam: Family) -> dict:
     """Parameters of the real-size policy, counted on the meta device (nothing allocated)."""
-    cfg = make_config(fam, dict(FULL_SPEC, cameras=FULL_SPEC["cameras"]))
+    cfg = make_config(fam, FULL_SPEC)
+    cfg.device = "meta"
     with torch.device("meta"):
         policy = fam.policy_cls(cfg)
-    return sum(p.numel() for p in policy.parameters())
+    return param_breakdown(policy)
+
+
+def param_breakdown(policy) -> dict:
+    """Parameter counts: total, per part, and the two lm_heads (saved, never used for actions)."""
+    parts: dict[str, int] = {}
+    for name, p in policy.named_parameters():
+        key = name.removeprefix("model.").removeprefix("paligemma_with_expert.")
+        for prefix in (
+            "paligemma.model.vision_tower",
+            "paligemma.model.multi_modal_projector",
+            "paligemma.model.language_model.embed_tokens",
+            "paligemma.model.language_model",
+            "paligemma.lm_head",
+            "gemma_expert.lm_head",
+            "gemma_expert.model",
+        ):
+            if key.startswith(prefix):
+                key = prefix
+                break
+        else:
+            key = "projections"
+        parts[key] = parts.get(key, 0) + p.numel()
+    total = sum(parts.values())
+    heads = parts.get("paligemma.lm_head", 0) + parts.get("gemma_expert.lm_head", 0)
+    return {"total": total, "without_lm_heads": total - heads, "parts": parts}
 
 
 FULL_SPEC = dict(
@@ -943,9 +975,34 @@ FULL_SPEC = dict(
 )
 
 
+def upstream_layout(fam: Family, cfg) -> dict[str, tuple[tuple[int, ...], torch.dtype]]:
+    """Names, shapes and dtypes of the policy upstream builds for `cfg` (on the meta device: nothing allocated)."""
+    cfg = copy.deepcopy(cfg)
+    cfg.device = "meta"
+    with torch.device("meta"), contextlib.redirect_stdout(io.StringIO()):
+        policy = fam.policy_cls(cfg)
+    return {k: (tuple(v.shape), v.dtype) for k, v in policy.state_dict().items()}
+
+
+def check_full_size(fam: Family, out: Path) -> None:
+    """The written file against the policy upstream builds from the written config.json: the same tensor names,
+    shapes and dtypes (what from_pretrained(strict=True) loads without casting)."""
+    want = upstream_layout(fam, PreTrainedConfig.from_pretrained(str(out)))
+    with safetensors.safe_open(str(out / "model.safetensors"), "pt") as f:
+        have = {k: (tuple(f.get_slice(k).get_shape()), f.get_slice(k).get_dtype()) for k in f.keys()}
+    names = {torch.bfloat16: "BF16", torch.float32: "F32"}
+    assert set(want) == set(have), (sorted(set(want) ^ set(have)))[:10]
+    for k, (shape, dtype) in want.items():
+        assert have[k] == (shape, names[dtype]), (k, have[k], shape, dtype)
+    print(f"checked {out / 'model.safetensors'}: {len(have)} tensors match upstream's {fam.name} policy")
+
+
 def cmd_full_size(args) -> None:
     fam = FAMILIES[args.family]
     out = Path(args.out or CACHE / "checkpoints" / f"{fam.name}-full-random")
+    if args.check_only:
+        check_full_size(fam, out)
+        return
     started = time.time()
     cfg = make_config(fam, FULL_SPEC)
     cfg.device = "cpu"
@@ -953,9 +1010,9 @@ def cmd_full_size(args) -> None:
     if out.exists():
         shutil.rmtree(out)
     out.mkdir(parents=True)
-    # Upstream builds in float32 and then casts (to_bfloat16_for_selected_params): about 14 GB for pi0 at the
-    # peak. Building under a bfloat16 default dtype keeps the peak near the bf16 size; the parameters upstream
-    # keeps in float32 (vision tower, projector, norms) are cast back to float32 by upstream itself.
+    # Upstream builds in float32 and then casts (to_bfloat16_for_selected_params): 16 GB for pi0 at the peak.
+    # Building under a bfloat16 default dtype keeps the peak near the bf16 size; upstream itself casts the
+    # vision tower, the projector and the norms back to float32.
     torch.manual_seed(5)
     old = torch.get_default_dtype()
     torch.set_default_dtype(torch.bfloat16)
@@ -963,7 +1020,18 @@ def cmd_full_size(args) -> None:
         policy = fam.policy_cls(cfg)
     finally:
         torch.set_default_dtype(old)
-    n_params = sum(p.numel() for p in policy.parameters())
+    # the bfloat16 default also made the float32 parts of upstream's bf16 layout bfloat16 (PI0Pytorch's own
+    # projections action_in/out_proj, state_proj, time MLPs stay float32 upstream): cast every tensor to the
+    # dtype upstream gives it for this config
+    layout = upstream_layout(fam, cfg)
+    with torch.no_grad():
+        for name, p in policy.named_parameters():
+            if p.dtype != layout[name][1]:
+                p.data = p.data.to(layout[name][1])
+    # norms at zero (weight 1) and the zero-init adaRMS dense weights would make parts of the network trivial
+    perturb_constant_params(policy, torch.Generator().manual_seed(6))
+    breakdown = param_breakdown(policy)
+    n_params = breakdown["total"]
     policy.save_pretrained(out)
     pre, post = fam.make_processors(cfg, dataset_stats=stats)
     pre.save_pretrained(out)
@@ -977,13 +1045,18 @@ def cmd_full_size(args) -> None:
         f"Random-weight {fam.name} checkpoint with the real sizes (PaliGemma gemma_2b + SigLIP so400m, "
         "gemma_300m action expert), for benchmarks only.\n"
         f"Generated by `tools/oracle/run.sh pi_oracle.py full-size --family {fam.name}` in {elapsed:.0f} s.\n"
-        f"{n_params} parameters; config dtype bfloat16, so upstream keeps the vision tower, the projector and the "
-        f"RMS norms in float32 and everything else in bfloat16 (parameters per dtype: {json.dumps(dtypes)}).\n"
+        f"{n_params} parameters ({breakdown['without_lm_heads']} without the two lm_heads: "
+        f"{json.dumps(breakdown['parts'])}); config dtype bfloat16: the dtypes upstream gives each tensor for "
+        "it, i.e. the vision tower, the projector, the RMS norms and the action/state/time projections float32, the "
+        "Gemma layers, embeddings and lm_heads bfloat16 (parameters per dtype: "
+        f"{json.dumps(dtypes)}). Constant tensors (norm weights, zero-init adaRMS dense weights) were perturbed.\n"
         f"One camera 224x224, state 8, action 7, chunk 50, 10 steps, {norm} stats. The tokenizer is the stand-in "
         "in tests/fixtures/paligemma_hub (run with HF_HUB_CACHE pointing there); the model's vocabulary is the real "
         "257152.\n"
     )
     print(json.dumps({"out": str(out), "params": n_params, "dtypes": dtypes, "seconds": round(elapsed, 1)}))
+    del policy
+    check_full_size(fam, out)
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -999,11 +1072,12 @@ def main(argv: list[str] | None = None) -> None:
     fs = sub.add_parser("full-size")
     fs.add_argument("--family", choices=sorted(FAMILIES), required=True)
     fs.add_argument("--out", default="")
+    fs.add_argument("--check-only", action="store_true", help="only compare an existing checkpoint with upstream")
     c = sub.add_parser("count")
     c.add_argument("--family", choices=sorted(FAMILIES), required=True)
     args = p.parse_args(argv)
     if args.cmd == "count":
-        print(count_params(FAMILIES[args.family]))
+        print(json.dumps(count_params(FAMILIES[args.family])))
         return
     {"tokenizer": cmd_tokenizer, "fixtures": cmd_fixtures, "full-size": cmd_full_size}[args.cmd](args)
 
