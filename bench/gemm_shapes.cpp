@@ -1,4 +1,5 @@
-// Times SmolVLA's full-size GEMM shapes (y[M,N] = x[M,K] W[N,K]^T) on every candidate: OpenBLAS, oneDNN matmul
+// Times a family's full-size GEMM shapes (y[M,N] = x[M,K] W[N,K]^T; SmolVLA's by default, pi0's with --model pi0)
+// on every candidate: OpenBLAS, oneDNN matmul
 // (f32, native bf16 where the CPU has it), Tether's panel GEMM with f32 / bf16 / fp16 weights widened in the kernel,
 // and bf16 weights widened to an f32 copy before each oneDNN call. Chooses the library and the half-precision path
 // on CPUs without bf16 instructions; prints the machine's best measured fp32 GEMM rate. Results: bench/GEMM.md.
@@ -29,8 +30,9 @@ struct GemmShape {
   const char* group;
   const char* name;
   int64_t m, n, k;
-  // Calls per inference of a 3-camera SmolVLA (12 SigLIP layers per image, 16 VLM layers, 16 expert
-  // layers of which 8 cross-attend, 10 denoising steps); 0 marks an alternative length, not counted.
+  // Calls per inference (SmolVLA: 3 cameras, 12 SigLIP layers per image, 16 VLM layers, 16 expert layers of which 8
+  // cross-attend, 10 denoising steps; pi0: 1 camera, 27 SigLIP layers, 18 VLM layers, 18 expert layers, 10 steps);
+  // 0 marks an alternative length, not counted.
   int calls;
 };
 
@@ -62,6 +64,28 @@ const GemmShape kShapes[] = {
     {"expert", "time_mlp_in 1440->720", 50, 720, 1440, 10},
     {"expert", "time_mlp_out 720->720", 50, 720, 720, 10},
     {"expert", "action_out 720->32", 50, 32, 720, 10},
+};
+
+// pi0 / pi0.5 with one 224 px camera: SigLIP so400m over 256 patches, a prefix of 256 image + ~14 text tokens
+// through Gemma 2B (q, k, v and gate, up stacked as Tether runs them; the last layer computes only its K/V), and
+// the Gemma 300M expert over the 50 action tokens (pi0's state token once per request is left out).
+const GemmShape kPi0Shapes[] = {
+    {"vision", "qkv 1152->3456", 256, 3456, 1152, 27},
+    {"vision", "out 1152->1152", 256, 1152, 1152, 27},
+    {"vision", "fc1 1152->4304", 256, 4304, 1152, 27},
+    {"vision", "fc2 4304->1152", 256, 1152, 4304, 27},
+    {"projector", "1152->2048", 256, 2048, 1152, 1},
+    {"prefix270", "qkv 2048->2560", 270, 2560, 2048, 17},
+    {"prefix270", "k/v 2048->512 (last layer)", 270, 512, 2048, 1},
+    {"prefix270", "o 2048->2048", 270, 2048, 2048, 17},
+    {"prefix270", "gate/up 2048->32768", 270, 32768, 2048, 17},
+    {"prefix270", "down 16384->2048", 270, 2048, 16384, 17},
+    {"expert", "qkv 1024->2560", 50, 2560, 1024, 18 * 10},
+    {"expert", "o 2048->1024", 50, 1024, 2048, 18 * 10},
+    {"expert", "gate/up 1024->8192", 50, 8192, 1024, 18 * 10},
+    {"expert", "down 4096->1024", 50, 1024, 4096, 18 * 10},
+    {"expert", "action_time_mlp_in 2048->1024", 50, 1024, 2048, 10},
+    {"expert", "action_time_mlp_out 1024->1024", 50, 1024, 1024, 10},
 };
 
 // --cpu-time: process CPU time instead of the wall clock. With --threads 1 it measures the work of one core even
@@ -137,12 +161,14 @@ struct Row {
 int main(int argc, char** argv) try {
   int threads = 2;
   double min_batch_s = 0.05;
+  std::string model = "smolvla";
   for (int i = 1; i < argc; ++i) {
     if (!std::strcmp(argv[i], "--threads") && i + 1 < argc) threads = std::atoi(argv[++i]);
     else if (!std::strcmp(argv[i], "--min-batch-ms") && i + 1 < argc) min_batch_s = std::atof(argv[++i]) / 1e3;
     else if (!std::strcmp(argv[i], "--cpu-time")) g_cpu_time = true;
+    else if (!std::strcmp(argv[i], "--model") && i + 1 < argc) model = argv[++i];
     else {
-      std::fprintf(stderr, "usage: gemm_shapes [--threads N] [--min-batch-ms MS] [--cpu-time]\n");
+      std::fprintf(stderr, "usage: gemm_shapes [--threads N] [--min-batch-ms MS] [--cpu-time] [--model smolvla|pi0|pi05]\n");
       return 2;
     }
   }
@@ -159,7 +185,14 @@ int main(int argc, char** argv) try {
   std::vector<Row> rows;
   std::mt19937 gen(1);
   std::uniform_real_distribution<float> dist(-1.0f, 1.0f);
-  for (const GemmShape& s : kShapes) {
+  if (model != "smolvla" && model != "pi0" && model != "pi05") {
+    std::fprintf(stderr, "gemm_shapes: --model must be smolvla, pi0 or pi05\n");
+    return 2;
+  }
+  // pi0.5's GEMMs are pi0's (its adaptive norms' projections run once per step, not per token).
+  std::vector<GemmShape> shapes(std::begin(kShapes), std::end(kShapes));
+  if (model != "smolvla") shapes.assign(std::begin(kPi0Shapes), std::end(kPi0Shapes));
+  for (const GemmShape& s : shapes) {
     const int64_t m = s.m, n = s.n, k = s.k;
     std::vector<float> x(std::size_t(m * k)), w(std::size_t(n * k)), ref(std::size_t(m * n)), y(ref.size());
     for (auto& v : x) v = dist(gen);
@@ -278,12 +311,15 @@ int main(int argc, char** argv) try {
   std::printf("\nper group (seconds per inference):\n%-10s", "group");
   for (const Variant& v : kVariants) std::printf(" %8.8s", v.name);
   std::printf("\n");
-  for (const char* group : {"vision", "connector", "prefix241", "expert"}) {
-    std::printf("%-10s", group);
+  std::vector<std::string> groups;  // in table order
+  for (const Row& r : rows)
+    if (std::find(groups.begin(), groups.end(), r.shape->group) == groups.end()) groups.push_back(r.shape->group);
+  for (const std::string& group : groups) {
+    std::printf("%-10s", group.c_str());
     for (int v = 0; v < kNumVariants; ++v) {
       double t = 0;
       for (const Row& r : rows)
-        if (!std::strcmp(r.shape->group, group)) t += r.shape->calls * r.secs[v];
+        if (group == r.shape->group) t += r.shape->calls * r.secs[v];
       if (rows.front().secs[v] > 0) std::printf(" %8.3f", t);
       else std::printf(" %8s", "n/a");
     }

@@ -83,7 +83,7 @@ done
 
 # The machine's fp32 GEMM peak, measured now on the model's own GEMM shapes (best of OpenBLAS, oneDNN, panel).
 echo "fp32 GEMM peak on this machine (bench/gemm_shapes)..." >&2
-build/release/bench/gemm_shapes --threads "$(nproc)" --min-batch-ms 20 > "$work/gemm.txt"
+build/release/bench/gemm_shapes --model "$family" --threads "$(nproc)" --min-batch-ms 20 > "$work/gemm.txt"
 peak=$(sed -n 's/^best measured fp32 GEMM rate: \([0-9.]*\) GFLOP.*/\1/p' "$work/gemm.txt")
 
 tools/oracle/run.sh - "$work" "$peak" <<'PY'
