@@ -198,17 +198,22 @@ void model_checks(const std::string& dir, std::vector<Check>& out) {
   }
   try {
     models::TensorStore store = family ? family->open_weights(d) : models::TensorStore::open_dir(d.string());
-    int64_t params = 0, kept = 0;
+    int64_t params = 0, kept = 0, kept_bf16 = 0;
     for (const auto& name : store.names()) {
-      const int64_t n = shape_numel(store.entry(name).shape);
+      const auto& entry = store.entry(name);
+      const int64_t n = shape_numel(entry.shape);
       params += n;
-      if (!family || !family->keeps_copy || family->keeps_copy(name)) kept += n;
+      if (family && family->keeps_copy && !family->keeps_copy(name)) continue;
+      kept += n;
+      if (entry.dtype == DType::bf16) kept_bf16 += n;
     }
     double bytes = 0;
     for (const auto& f : files) bytes += double(fs::file_size(d / f));
-    // The tensors the model keeps a copy of, at 4 (fp32) or 2 (bf16, fp16) bytes each, plus a tenth for
-    // activations; tensors read in place from the file are paged in on demand and not counted.
-    const double need = double(kept) * 4.0 * 1.1, need_half = double(kept) * 2.0 * 1.1;
+    // The tensors the model keeps a copy of, at 4 bytes each in fp32 (2 for bf16-stored ones, kept as bf16 panels
+    // exactly) and 2 in bf16 or fp16, plus a tenth for activations; tensors read in place from the file are paged
+    // in on demand and not counted.
+    const double need = (double(kept - kept_bf16) * 4.0 + double(kept_bf16) * 2.0) * 1.1;
+    const double need_half = double(kept) * 2.0 * 1.1;
     const double avail = double(meminfo_bytes("MemAvailable"));
     out.push_back({"model", "weights", Status::ok,
                    count_str(params) + " parameters, " + gb(bytes) + " on disk" +

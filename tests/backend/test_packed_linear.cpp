@@ -8,6 +8,7 @@
 
 #include "backend/cpu/cpu_features.h"
 #include "backend/cpu/packed_linear.h"
+#include "backend/cpu/panel_gemm.h"
 #include "core/dtype.h"
 
 using namespace tether;
@@ -106,4 +107,26 @@ TEST(PackedLinear, RejectsMisuse) {
   float x = 1, y = 0;
   EXPECT_THROW(lin.forward(&x, 1, &y), std::exception);
   EXPECT_THROW(lin.pack(&x, 0, 1, nullptr, Precision::fp32), std::exception);
+}
+
+// fp32 weights that are all bf16 values (a bf16 checkpoint widened) are kept as bf16 panels; the result must be
+// bit-identical to the float32 panels of the same values.
+TEST(PackedLinear, Fp32WeightsThatAreBf16ValuesGiveTheFloat32PanelsResultExactly) {
+  if (linear_path(Precision::fp32) != LinearPath::panel_f32) GTEST_SKIP() << "fp32 runs on oneDNN here";
+  const int64_t m = 37, n = 70, k = 300;
+  std::mt19937 gen(7);
+  std::uniform_real_distribution<float> dist(-1.0f, 1.0f);
+  std::vector<float> x(static_cast<std::size_t>(m * k)), w(static_cast<std::size_t>(n * k)), b(static_cast<std::size_t>(n));
+  for (auto& v : x) v = dist(gen);
+  for (auto& v : w) v = bf16_to_f32(f32_to_bf16(dist(gen)));
+  for (auto& v : b) v = dist(gen);
+  PackedLinear lin;
+  lin.pack(w.data(), n, k, b.data(), Precision::fp32);
+  std::vector<float> y(std::size_t(m * n)), want(std::size_t(m * n));
+  lin.forward(x.data(), m, y.data());
+  const detail::PanelKernel& kernel = detail::panel_kernel();
+  const std::vector<float> panels = detail::pack_f32_panels(w.data(), n, k, kernel.panel_width);
+  const std::vector<float> bias = detail::pad_bias(b.data(), n, kernel.panel_width);
+  kernel.f32({x.data(), m, k, k, panels.data(), n, bias.data(), want.data(), n, false});
+  EXPECT_EQ(y, want);
 }

@@ -2,6 +2,7 @@
 #include "backend/cpu/packed_linear.h"
 
 #include <algorithm>
+#include <cstring>
 #include <map>
 #include <tuple>
 #include <oneapi/dnnl/dnnl.hpp>
@@ -153,11 +154,26 @@ PackedLinear::~PackedLinear() = default;
 PackedLinear::PackedLinear(PackedLinear&&) noexcept = default;
 PackedLinear& PackedLinear::operator=(PackedLinear&&) noexcept = default;
 
+namespace {
+// Every value is a bfloat16 value (its low 16 bits are zero): what a bf16 checkpoint widened to float32 holds.
+bool exactly_bf16(const float* w, int64_t count) {
+  for (int64_t i = 0; i < count; ++i) {
+    uint32_t bits;
+    std::memcpy(&bits, &w[i], sizeof bits);
+    if (bits & 0xFFFFu) return false;
+  }
+  return true;
+}
+}  // namespace
+
 void PackedLinear::Impl::pack_panels(const float* weight, const float* bias_in) {
   const detail::PanelKernel& kernel = detail::panel_kernel();
-  const auto type = path == LinearPath::panel_bf16  ? detail::PanelType::bf16
-                    : path == LinearPath::panel_f16 ? detail::PanelType::f16
-                                                    : detail::PanelType::f32;
+  auto type = path == LinearPath::panel_bf16  ? detail::PanelType::bf16
+              : path == LinearPath::panel_f16 ? detail::PanelType::f16
+                                              : detail::PanelType::f32;
+  // fp32 weights that are all bf16 values (a bf16 checkpoint) are kept as bf16 panels: the kernel widens them back
+  // exactly, so every product is bit-identical to the float32 panels' while the weights take half the memory.
+  if (type == detail::PanelType::f32 && exactly_bf16(weight, n * k)) type = detail::PanelType::bf16;
   panel_fn = kernel.get(type);
   if (type == detail::PanelType::f32) panels_f32 = detail::pack_f32_panels(weight, n, k, kernel.panel_width);
   else panels = detail::pack_half_panels(weight, n, k, kernel.panel_width, type);

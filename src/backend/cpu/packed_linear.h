@@ -3,7 +3,8 @@
 //   instructions (bf16 weights and inputs, float32 accumulation). Primitives are created once per row count, so
 //   the steady state (the denoise loop) builds nothing and allocates nothing of its own.
 // - the panel GEMM (panel_gemm.h): bf16 or fp16 weights widened to float32 inside the kernel, inputs and
-//   accumulation in float32, on every CPU. It keeps half-size weights where bf16 is not native.
+//   accumulation in float32, on every CPU. It keeps half-size weights where bf16 is not native, and for fp32 it
+//   keeps weights that are all bf16 values (a bf16 checkpoint) as bf16 panels: exact, at half the memory.
 #pragma once
 
 #include <cstdint>
