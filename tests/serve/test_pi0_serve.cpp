@@ -431,6 +431,7 @@ TEST(Pi0Wedges, EmbodimentMapsNormalisedOutputAndCutsAPaddedOne) {
     wait_ready(server.port());
     const Json config = Json::parse(http_get(server.port(), "/config").body);
     EXPECT_EQ(config["wedges"]["embodiment"]["model_action_dim"], 32);
+    EXPECT_EQ(config["action_dim"], 6);  // what /act answers
     const Json a = act_ok(server.port(), pc.body("go", 9));
     EXPECT_EQ(a["action_dim"], 6);
     ASSERT_EQ(a["actions"].size(), 8u);
