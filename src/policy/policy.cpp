@@ -89,8 +89,8 @@ Prediction Policy::predict(const std::vector<Observation>& batch) {
                                                    " values, the model expects " + std::to_string(s.state_dim));
     for (float v : o.state)
       if (!std::isfinite(v)) throw Error(ErrorCode::invalid_argument, "state contains NaN or Inf");
-    // Checked here, before any item of the batch reaches the model: the tokenizer would refuse it anyway, but naming
-    // its own file and the offset in the prompt the family built around the instruction.
+    // Checked here, before any item of the batch reaches the model. The tokenizer would refuse it too, but with a
+    // message naming its own file and an offset into the prompt the family built around the instruction.
     if (const std::size_t bad = text::find_invalid_utf8(o.instruction); bad != std::string::npos)
       throw Error(ErrorCode::invalid_argument,
                   "instruction is not valid UTF-8 (byte " + std::to_string(bad) + " of " +
