@@ -16,6 +16,7 @@
 #include "core/safetensors.h"
 #include "models/family.h"
 #include "policy/embodiment.h"
+#include "runtime/wedges.h"
 
 namespace tether::cli {
 
@@ -103,10 +104,7 @@ double export_checkpoint(const std::string& src, const std::string& out_dir, con
   for (const auto& name : names) source_files[name] = sha256_file_hex((src_dir / name).string());
 
   auto reference = policy::Policy::load(src);
-  if (embodiment && int64_t(embodiment->joints.size()) != reference->spec().action_dim)
-    throw Error(ErrorCode::invalid_argument, "embodiment '" + embodiment->name + "' has " +
-                                                 std::to_string(embodiment->joints.size()) + " joints, the model outputs " +
-                                                 std::to_string(reference->spec().action_dim) + " action values");
+  if (embodiment) runtime::embodiment_action_dim(*embodiment, reference->spec());  // the rule `tether serve` applies
 
   // Write the deployment directory.
   fs::create_directories(out);

@@ -60,6 +60,7 @@ int run_model(const InspectArgs& a) {
                     {"weights_dtype", s.weights_dtype},
                     {"weight_files", policy->weight_files()},
                     {"tokenizer", s.tokenizer},
+                    {"tokenizer_source", s.tokenizer_source},
                     {"stages", s.stages},
                     {"parameters", params},
                     {"parameters_by_dtype", by_dtype},

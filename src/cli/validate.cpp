@@ -75,13 +75,22 @@ int run_validate(const ValidateArgs& a) {
   }
   if (altered == 0) add("files (" + std::to_string(files.size()) + ") match their sha256", 0, 0, true);
 
-  // A damaged export may not even load: that is a failed check, reported with the rest, not a usage error.
+  // A damaged export may not even load: that is a failed check, reported with the rest, not a usage error. The
+  // reference failing to load (its tokenizer no longer in the hub cache, say) is told apart from the export's failure.
+  std::unique_ptr<policy::Policy> ref;
   try {
-    auto ref = policy::Policy::load(reference);
-    auto exported = policy::Policy::load(dir.string());
-    for (const auto& d : compare_seeded(*ref, *exported, 4)) add(d.name, d.max_abs, d.mean_abs, d.max_abs <= a.threshold);
-    for (const auto& d : compare_with_oracle(reference, *exported))
-      add(d.name, d.max_abs, d.mean_abs, d.max_abs <= a.threshold);
+    ref = policy::Policy::load(reference);
+  } catch (const Error& e) {
+    add(std::string("load the reference: ") + e.what(), INFINITY, INFINITY, false);
+  }
+  try {
+    if (ref) {
+      auto exported = policy::Policy::load(dir.string());
+      for (const auto& d : compare_seeded(*ref, *exported, 4))
+        add(d.name, d.max_abs, d.mean_abs, d.max_abs <= a.threshold);
+      for (const auto& d : compare_with_oracle(reference, *exported))
+        add(d.name, d.max_abs, d.mean_abs, d.max_abs <= a.threshold);
+    }
   } catch (const Error& e) {
     add(std::string("run the export: ") + e.what(), INFINITY, INFINITY, false);
   }

@@ -65,7 +65,6 @@ std::vector<CaseDiff> compare_with_oracle(const std::string& reference_dir, poli
   const fs::path root = fs::path(reference_dir).lexically_normal().parent_path();
   if (!fs::exists(root / "oracle.safetensors") || !fs::is_directory(root / "inputs")) return {};
   const SafeTensorsFile oracle = SafeTensorsFile::open((root / "oracle.safetensors").string());
-  const Json cameras = Json::parse(oracle.metadata().at("cameras"));
   const Json instructions = Json::parse(oracle.metadata().at("instructions"));
   const Json files = Json::parse(oracle.metadata().at("input_files"));
   const Tensor state = oracle.get("input.state");
@@ -77,9 +76,9 @@ std::vector<CaseDiff> compare_with_oracle(const std::string& reference_dir, poli
     batch[b].instruction = instructions.at(b).get<std::string>();
     const int64_t n = spec.chunk_size * spec.max_action_dim;
     batch[b].noise.assign(noise.begin() + int64_t(b) * n, noise.begin() + int64_t(b + 1) * n);
-    for (const auto& cam : cameras)
-      batch[b].images[cam.get<std::string>()] =
-          vision::load_image((root / "inputs" / files.at(cam.get<std::string>()).at(b).get<std::string>()).string());
+    // The cameras the run was given (input_files); the oracle's `cameras` also lists the ones it left out.
+    for (auto cam = files.begin(); cam != files.end(); ++cam)
+      batch[b].images[cam.key()] = vision::load_image((root / "inputs" / cam->at(b).get<std::string>()).string());
   }
   return {diff_of("oracle-" + root.filename().string(), oracle.get("out.actions").to_f32(),
                   flat_actions(candidate.predict(batch)))};

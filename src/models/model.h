@@ -55,6 +55,7 @@ struct ModelSpec {
   std::string missing_camera_rule;  // one sentence: what happens to a camera a request leaves out
   std::vector<std::string> stages;  // the model's timed stages in order (StageTimings names)
   std::string tokenizer;            // tokenizer kind: "byte_level_bpe", "sentencepiece"
+  std::string tokenizer_source;     // the file its vocabulary was read from (tokenizer.json or tokenizer.model)
   std::string state_key, action_key;  // the feature keys the normaliser knows them by
   int64_t state_dim = 0, action_dim = 0, chunk_size = 0, num_steps = 0;
   int64_t max_state_dim = 0, max_action_dim = 0;

@@ -324,6 +324,7 @@ PiZero::PiZero(const fs::path& dir, const Json& config, TensorStore store, const
   tok_settings_ = read_tokenizer_settings(dir, config, pi05 ? 200 : 48);
   const fs::path tok_dir = find_backbone_dir(dir, tok_settings_.name, "the tokenizer_processor step's tokenizer_name");
   tokenizer_.emplace(text::load_pretrained_tokenizer(tok_dir.string()));
+  spec_.tokenizer_source = tokenizer_->source;
 
   // Weights: upstream's key renames first, then the sizes the tensors imply.
   normalise_keys(store, pi05);

@@ -192,6 +192,7 @@ SmolVLA::SmolVLA(const fs::path& dir, const Json& config, TensorStore weights, c
   const int64_t scale_factor = json_get_or<int64_t>(vlm_cfg, "scale_factor", 2, vlm_where);
   // Loaded as transformers' AutoTokenizer builds it (tokenizer class overrides, truncation side, pad token).
   tokenizer_.emplace(text::load_pretrained_tokenizer(vlm_dir.string()));
+  spec_.tokenizer_source = tokenizer_->source;
 
   auto resize = config.find("resize_imgs_with_padding");
   if (resize != config.end() && !resize->is_null()) {

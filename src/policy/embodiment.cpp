@@ -175,6 +175,16 @@ void Embodiment::map_normalized_to_range(float* actions, int64_t rows) const {
     }
 }
 
+void Embodiment::map_range_to_normalized(float* actions, int64_t rows) const {
+  const size_t dim = joints.size();
+  for (int64_t r = 0; r < rows; ++r)
+    for (size_t j = 0; j < dim; ++j) {
+      float& a = actions[size_t(r) * dim + j];
+      const double span = range_max[j] - range_min[j];
+      a = span > 0 ? float((double(a) - range_min[j]) / span * 2.0 - 1.0) : 0.0f;
+    }
+}
+
 Embodiment load_embodiment_file(const std::string& path) { return parse_embodiment(read_config(path), path); }
 
 std::vector<std::string> embodiment_presets(const std::string& dir) {

@@ -37,6 +37,8 @@ struct Embodiment {
   // -1 -> min, 1 -> max. `actions` holds rows x joints.size() values; out-of-range and non-finite values map as the
   // formula says and are left to the action guard.
   void map_normalized_to_range(float* actions, int64_t rows) const;
+  // Its inverse (min -> -1, max -> 1), for actions in robot units handed back to the model (RTC's leftover).
+  void map_range_to_normalized(float* actions, int64_t rows) const;
 };
 
 // Errors: a missing file -> not_found; anything wrong in it -> invalid_argument naming the file and the field,

@@ -5,6 +5,8 @@
 #include <chrono>
 #include <cmath>
 
+#include "text/unicode.h"
+
 namespace tether::policy {
 
 namespace {
@@ -87,6 +89,12 @@ Prediction Policy::predict(const std::vector<Observation>& batch) {
                                                    " values, the model expects " + std::to_string(s.state_dim));
     for (float v : o.state)
       if (!std::isfinite(v)) throw Error(ErrorCode::invalid_argument, "state contains NaN or Inf");
+    // Checked here, before any item of the batch reaches the model. The tokenizer would refuse it too, but with a
+    // message naming its own file and an offset into the prompt the family built around the instruction.
+    if (const std::size_t bad = text::find_invalid_utf8(o.instruction); bad != std::string::npos)
+      throw Error(ErrorCode::invalid_argument,
+                  "instruction is not valid UTF-8 (byte " + std::to_string(bad) + " of " +
+                      std::to_string(o.instruction.size()) + ")");
     for (const auto& [camera, image] : o.images) {
       if (std::find(s.cameras.begin(), s.cameras.end(), camera) == s.cameras.end()) {
         std::string known;

@@ -28,16 +28,31 @@ Wedges::Wedges(WedgeOptions options)
   if (opts_.record) recorder_ = std::make_unique<TraceRecorder>(*opts_.record);
 }
 
+int64_t embodiment_action_dim(const policy::Embodiment& e, const models::ModelSpec& spec) {
+  const int64_t joints = int64_t(e.joints.size()), dim = spec.action_dim;
+  if (joints == dim) return dim;
+  const bool padded = spec.max_action_dim > 0 && dim == spec.max_action_dim && joints < dim;
+  if (padded) return joints;
+  throw Error(ErrorCode::invalid_argument,
+              "embodiment '" + e.name + "' has " + std::to_string(joints) + " joints, the model outputs " +
+                  std::to_string(dim) + " action values" +
+                  (joints < dim ? " (only a padded output, action_dim = max_action_dim " +
+                                      std::to_string(spec.max_action_dim) + ", is cut to fewer joints)"
+                                : ""));
+}
+
 void Wedges::bind_model(const models::ModelSpec& spec, bool actions_normalized) {
   rows_ = spec.chunk_size;
-  dim_ = spec.action_dim;
+  dim_ = model_dim_ = spec.action_dim;
   std::vector<policy::JointLimits> limits;
   if (opts_.embodiment) {
     const auto& e = *opts_.embodiment;
-    if (int64_t(e.joints.size()) != dim_)
-      throw Error(ErrorCode::invalid_argument, "embodiment '" + e.name + "' has " + std::to_string(e.joints.size()) +
-                                                   " joints, the model outputs " + std::to_string(dim_) +
-                                                   " action values");
+    dim_ = embodiment_action_dim(e, spec);
+    // RTC guides the model's whole output with the client's leftover; a cut one has lost the padded values.
+    if (dim_ != model_dim_ && opts_.sampler.rtc)
+      throw Error(ErrorCode::invalid_argument, "--rtc: embodiment '" + e.name + "' keeps " + std::to_string(dim_) +
+                                                   " of the model's " + std::to_string(model_dim_) +
+                                                   " action values, and RTC needs all of them back");
     joints_ = e.joints;
     limits = e.limits;
     map_to_range_ = actions_normalized;
@@ -88,7 +103,17 @@ void Wedges::on_model_chunk(Episode& ep, std::vector<float>& actions, SteadyCloc
 }
 
 void Wedges::map_output(std::vector<float>& actions) const {
+  if (dim_ != model_dim_) {
+    const int64_t rows = int64_t(actions.size()) / model_dim_;
+    for (int64_t r = 1; r < rows; ++r)  // row 0 stays where it is; later rows move towards the front
+      for (int64_t j = 0; j < dim_; ++j) actions[std::size_t(r * dim_ + j)] = actions[std::size_t(r * model_dim_ + j)];
+    actions.resize(std::size_t(rows * dim_));
+  }
   if (map_to_range_) opts_.embodiment->map_normalized_to_range(actions.data(), int64_t(actions.size()) / dim_);
+}
+
+void Wedges::unmap_output(std::vector<float>& actions) const {
+  if (map_to_range_) opts_.embodiment->map_range_to_normalized(actions.data(), int64_t(actions.size()) / dim_);
 }
 
 void Wedges::on_fallback_chunk(Episode& ep, const std::vector<float>& actions, int64_t rows,
@@ -170,7 +195,8 @@ Json Wedges::config_json() const {
   if (opts_.embodiment) {
     const auto& e = *opts_.embodiment;
     w["embodiment"] = {{"name", e.name}, {"joints", e.joints}, {"units", e.units},
-                       {"control_rate_hz", e.control_rate_hz}, {"maps_normalized_output", map_to_range_}};
+                       {"control_rate_hz", e.control_rate_hz}, {"maps_normalized_output", map_to_range_},
+                       {"model_action_dim", model_dim_}};
   }
   if (guard_) w["audit_log"] = opts_.audit_log;
   w["deadline_ms"] = opts_.deadline_ms > 0 ? Json(opts_.deadline_ms) : Json(nullptr);

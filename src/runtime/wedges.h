@@ -5,7 +5,8 @@
 //                        a chunk with NaN/Inf counts as a failed inference (breaker, fallback) and is never cached
 //   4. cloud fallback    when inference failed, missed its deadline or the circuit is open
 //   5. last good chunk   on a deadline miss the fallback could not cover
-//   6. embodiment map    normalised model output -> the embodiment's action range (checkpoints without action stats)
+//   6. embodiment map    a padded action output cut to the embodiment's joints; normalised model output -> the
+//                        embodiment's action range (checkpoints without action stats)
 //   7. action guard      NaN/Inf, acceleration, velocity, position limits: always last, whatever produced the chunk
 //   8. trace record      one hash-chained JSON line per request
 // This class holds the synchronous parts and the per-episode state; the server drives the asynchronous ones
@@ -55,6 +56,12 @@ struct WedgeOptions {
 // Control rate used to turn elapsed time into executed steps when nothing configures one (lerobot records at 30 fps).
 inline constexpr double kDefaultControlRateHz = 30.0;
 
+// How many of the model's action values the embodiment keeps: all of them when its joint count equals the model's
+// action_dim; its first J when the model's action is the padded vector of a base checkpoint (action_dim ==
+// max_action_dim, more values than the robot has joints), as openpi's robot output transforms keep actions[:, :J].
+// Throws invalid_argument naming both counts otherwise.
+int64_t embodiment_action_dim(const policy::Embodiment& embodiment, const models::ModelSpec& spec);
+
 // Where a response's actions came from.
 enum class ActionSource { model, cache, last_good, fallback };
 const char* action_source_name(ActionSource s);
@@ -79,8 +86,8 @@ class Wedges {
  public:
   explicit Wedges(WedgeOptions options);
 
-  // Checks the options against the loaded model (the embodiment's joints against action_dim) and builds the guard.
-  // Throws tether::Error naming the mismatch.
+  // Checks the options against the loaded model (the embodiment's joints against action_dim, see
+  // embodiment_action_dim) and builds the guard. Throws tether::Error naming the mismatch.
   void bind_model(const models::ModelSpec& spec, bool actions_normalized);
 
   const WedgeOptions& options() const { return opts_; }
@@ -88,6 +95,9 @@ class Wedges {
   bool guard_enabled() const { return guard_.has_value(); }
   bool skip_enabled() const { return opts_.similarity_threshold > 0 && opts_.max_similar_skips > 0; }
   const std::vector<std::string>& joint_names() const { return joints_; }
+  // Values per action row after the embodiment map (what /act answers and the fallback must answer with); the
+  // model's action_dim unless the embodiment cuts a padded output.
+  int64_t action_dim() const { return dim_; }
   CircuitBreaker& breaker() { return breaker_; }
   const CircuitBreaker& breaker() const { return breaker_; }
   EpisodeStore& episodes() { return episodes_; }
@@ -102,8 +112,13 @@ class Wedges {
   // maps the chunk to the embodiment's range in place and makes it the episode's last good chunk.
   void on_model_chunk(Episode& ep, std::vector<float>& actions, SteadyClock::time_point observed,
                       const policy::Observation* reference, const std::vector<float>& normalized_state);
-  // 6. Normalised model output -> the embodiment's action range, when the checkpoint lacks action stats.
+  // 6. A padded model output cut to the embodiment's joints, then normalised output -> the embodiment's action range
+  // when the checkpoint lacks action stats. `actions` holds rows x the model's action_dim values, rows x
+  // action_dim() after.
   void map_output(std::vector<float>& actions) const;
+  // The inverse of the range map for actions a client sends back (RTC's leftover), in place; identity when the
+  // output is not mapped.
+  void unmap_output(std::vector<float>& actions) const;
   // 4. A chunk from the fallback server becomes the last good one too.
   void on_fallback_chunk(Episode& ep, const std::vector<float>& actions, int64_t rows, SteadyClock::time_point observed);
   // 5. The last good chunk advanced to now, if the episode has one.
@@ -120,7 +135,7 @@ class Wedges {
  private:
   WedgeOptions opts_;
   double rate_hz_ = kDefaultControlRateHz;
-  int64_t rows_ = 0, dim_ = 0;
+  int64_t rows_ = 0, dim_ = 0, model_dim_ = 0;  // dim_: after the embodiment map; model_dim_: what the model outputs
   bool map_to_range_ = false;
   std::vector<std::string> joints_;
   std::optional<ActionGuard> guard_;

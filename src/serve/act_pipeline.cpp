@@ -207,6 +207,8 @@ net::awaitable<ActPipeline::Inference> ActPipeline::infer(Act& a, const RequestC
   if (a.parsed.rtc) {
     policy::Observation::Rtc rtc;
     rtc.prev_actions = std::move(a.parsed.rtc->prev_actions);
+    // The leftover is what this server answered: back from the embodiment's range to the model's output first.
+    host_.wedges().unmap_output(rtc.prev_actions);
     rtc.inference_delay = a.parsed.rtc->inference_delay;
     rtc.execution_horizon = w.sampler.rtc_execution_horizon;
     rtc.max_guidance_weight = w.sampler.rtc_max_guidance_weight;
@@ -293,7 +295,7 @@ ActResponse ActPipeline::respond(Act& a, const RequestContext& ctx, ActTrace& tr
   wedges.guard(*a.ep, *a.actions, a.rows, a.state, ctx.request_id, trace.episode_id, a.report);
   count_wedge_report(metrics_, a.report);
 
-  const int64_t dim = engine.spec.action_dim;
+  const int64_t dim = wedges.action_dim();  // the model's action_dim, or the embodiment's joints it was cut to
   const auto& actions = *a.actions;
   Json actions_json = Json::array();
   for (int64_t row = 0; row < a.rows; ++row)
@@ -384,7 +386,7 @@ net::awaitable<void> ActPipeline::call_fallback(Act& a, std::string_view body, c
     int64_t action_dim;
   };
   auto call = std::make_shared<const Call>(
-      Call{fallback_.get(), std::string(body), request_id, host_.engine().spec.action_dim});
+      Call{fallback_.get(), std::string(body), request_id, host_.wedges().action_dim()});
   auto perform = net::co_spawn(
       *fallback_pool_,
       [call]() -> net::awaitable<runtime::FallbackReply> {

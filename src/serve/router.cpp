@@ -35,7 +35,7 @@ Json Router::config_json() const {
           {"missing_camera_rule", s.missing_camera_rule},
           {"stages", s.stages},
           {"state_dim", s.state_dim},
-          {"action_dim", s.action_dim},
+          {"action_dim", host_.wedges().action_dim()},  // what /act answers (an embodiment may cut a padded output)
           {"chunk_size", s.chunk_size},
           {"num_steps", s.num_steps},
           {"normalization", engine.normalization},

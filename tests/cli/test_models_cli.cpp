@@ -164,8 +164,16 @@ TEST(ModelsCli, RegistryFigureErrorsNameTheEntryAndField) {
 }
 
 TEST(GoProbe, PrintsTheMachineBeforeAnythingElse) {
-  // An unsupported family fails after the probe: the probe lines come first, then the one error line.
+  // A model that cannot be pulled (offline, nothing in an empty cache) fails after the probe: the probe lines come
+  // first, then the one error line. Offline, so that the test never starts a real multi-gigabyte download.
+  const fs::path cache = fs::temp_directory_path() / ("tether_go_probe_empty_" + std::to_string(::getpid()));
+  ::setenv("HF_HUB_CACHE", cache.c_str(), 1);
+  ::setenv("HF_HUB_OFFLINE", "1", 1);
   const CliRun r = run_tether("go --model pi05-base");
+  ::unsetenv("HF_HUB_CACHE");
+  ::unsetenv("HF_HUB_OFFLINE");
+  fs::remove_all(cache);
+  EXPECT_NE(r.err.find("not on disk and could not be downloaded"), std::string::npos) << r.err;
   EXPECT_EQ(r.code, 2) << r.err;
   const std::string cpu = line_with(r.err, "tether go: CPU: ");
   const std::string gpu = line_with(r.err, "tether go: GPU: ");

@@ -2,6 +2,8 @@
 """A stand-in for the Hugging Face Hub and its CDN, on loopback, for the hub layer's integration tests.
 
 Prints one JSON line {"hub": url, "cdn": url} once both servers listen, then serves until stdin closes.
+`--repo ORG/NAME=DIR` (repeatable) also serves the files under DIR as that repository at COMMIT_MAIN (weights and
+SentencePiece models through the CDN, as LFS files), e.g. a fixture checkpoint for `tether go`.
 The hub is http://127.0.0.1:<port>; the CDN is http://localhost:<other port>, a different host name and port,
 so a client that forwards its token across the redirect is caught. GET /_log on the hub returns every
 request both servers received (method, path, headers), in order.
@@ -50,6 +52,23 @@ REPOS = {
                           "commits": {COMMIT_MAIN: {"config.json": MAIN_FILES["config.json"]}}, "gated": True},
 }
 RENAMED = {"tether-test/old-name": "tether-test/tiny"}
+LFS_SUFFIXES = (".safetensors", ".model", ".bin")
+
+
+def repo_from_dir(directory):
+    files = {}
+    for root, _, names in os.walk(directory):
+        for name in sorted(names):
+            path = os.path.join(root, name)
+            with open(path, "rb") as f:
+                files[os.path.relpath(path, directory).replace(os.sep, "/")] = (f.read(), name.endswith(LFS_SUFFIXES))
+    return {"refs": {"main": COMMIT_MAIN}, "commits": {COMMIT_MAIN: files}, "gated": False}
+
+
+for i, arg in enumerate(sys.argv[1:]):
+    if arg == "--repo":
+        repo_id, directory = sys.argv[i + 2].split("=", 1)
+        REPOS[repo_id] = repo_from_dir(directory)
 
 BLOBS = {}  # sha256 -> content, what the CDN serves
 for repo in REPOS.values():

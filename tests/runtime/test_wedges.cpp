@@ -167,6 +167,44 @@ TEST(Wedges, EmbodimentMapsNormalisedOutputOnlyWithoutActionStats) {
   EXPECT_EQ(b, (std::vector<float>{-1.f, 1.f}));
 }
 
+TEST(Wedges, EmbodimentCutsAPaddedOutputToItsJoints) {
+  WedgeOptions o;
+  o.embodiment = two_joint_arm();
+  o.audit_log = temp_path("audit_cut.jsonl");
+  // A base checkpoint's padded action (action_dim = max_action_dim): the first two values of each row are the arm's.
+  models::ModelSpec padded = spec(5, 2);
+  padded.max_action_dim = 5;
+  Wedges w(o);
+  w.bind_model(padded, /*actions_normalized=*/true);
+  EXPECT_EQ(w.action_dim(), 2);
+  EXPECT_EQ(w.config_json()["embodiment"]["model_action_dim"], 5);
+  std::vector<float> a = {-1.f, 1.f, 7, 7, 7, 0.f, -1.f, 7, 7, 7};
+  w.map_output(a);
+  EXPECT_EQ(a, (std::vector<float>{-1.f, 10.f, 0.f, 0.f}));
+  // RTC's leftover goes back through the inverse of the range map.
+  w.unmap_output(a);
+  EXPECT_EQ(a, (std::vector<float>{-1.f, 1.f, 0.f, -1.f}));
+  // Not padded (action_dim < max_action_dim), or more joints than values: refused, naming both counts.
+  models::ModelSpec unpadded = spec(5, 2);
+  unpadded.max_action_dim = 32;
+  for (const models::ModelSpec& s : {unpadded, spec(1, 2)}) {
+    Wedges refused(o);
+    try {
+      refused.bind_model(s, false);
+      FAIL() << "bound to " << s.action_dim << " action values";
+    } catch (const Error& e) {
+      EXPECT_NE(std::string(e.what()).find("2 joints, the model outputs " + std::to_string(s.action_dim)),
+                std::string::npos)
+          << e.what();
+    }
+  }
+  EXPECT_EQ(embodiment_action_dim(*o.embodiment, padded), 2);
+  // RTC needs the model's whole output back.
+  o.sampler.rtc = true;
+  Wedges rtc(o);
+  EXPECT_THROW(rtc.bind_model(padded, false), Error);
+}
+
 TEST(Wedges, GuardUsesTheEpisodesLastSentChunkAndAudits) {
   WedgeOptions o;
   o.embodiment = two_joint_arm();

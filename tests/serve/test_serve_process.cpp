@@ -15,9 +15,8 @@
 
 #include "core/json_util.h"
 #include "http_test_client.h"
+#include "serve_process.h"
 #include "serve/base64.h"
-
-extern char** environ;
 
 using namespace tether;
 using namespace tether::serve::testing;
@@ -32,76 +31,6 @@ const std::string kNoBf16Cap = "TETHER_MAX_CPU_ISA=AVX2";
 #else
 const std::string kNoBf16Cap = "TETHER_MAX_CPU_ISA=NEON";
 #endif
-
-// A `tether serve` child whose stdout is read for the listening line. SIGKILLed if a test leaves it running.
-class ServeProcess {
- public:
-  // `verb_args`: what follows the binary, e.g. {"serve", DIR, "--port", "0"}.
-  explicit ServeProcess(std::vector<std::string> verb_args, const std::vector<std::string>& env_overrides = {}) {
-    int out[2];
-    if (pipe(out) != 0) throw std::runtime_error("pipe failed");
-    std::vector<std::string> args = {TETHER_BINARY};
-    args.insert(args.end(), verb_args.begin(), verb_args.end());
-    std::vector<std::string> env_strings;
-    for (char** e = environ; *e; ++e) env_strings.emplace_back(*e);
-    env_strings.insert(env_strings.end(), env_overrides.begin(), env_overrides.end());
-    std::vector<char*> envp;
-    for (auto& e : env_strings) envp.push_back(e.data());
-    envp.push_back(nullptr);
-    std::vector<char*> argv;
-    for (auto& a : args) argv.push_back(a.data());
-    argv.push_back(nullptr);
-    posix_spawn_file_actions_t fa;
-    posix_spawn_file_actions_init(&fa);
-    posix_spawn_file_actions_adddup2(&fa, out[1], STDOUT_FILENO);
-    posix_spawn_file_actions_addclose(&fa, out[0]);
-    if (posix_spawn(&pid_, argv[0], &fa, nullptr, argv.data(), envp.data()) != 0) throw std::runtime_error("spawn failed");
-    posix_spawn_file_actions_destroy(&fa);
-    close(out[1]);
-    out_ = fdopen(out[0], "r");
-    char line[512];
-    if (!fgets(line, sizeof line, out_)) throw std::runtime_error("tether serve printed no listening line");
-    std::smatch m;
-    const std::string s(line);
-    if (!std::regex_search(s, m, std::regex(R"(^tether serve: listening on http://127\.0\.0\.1:(\d+)\n$)")))
-      throw std::runtime_error("unexpected first line: " + s);
-    port_ = uint16_t(std::stoi(m[1]));
-  }
-  ~ServeProcess() {
-    if (pid_ > 0) {
-      kill(pid_, SIGKILL);
-      waitpid(pid_, nullptr, 0);
-    }
-    if (out_) fclose(out_);
-  }
-  uint16_t port() const { return port_; }
-  // SIGTERM, then the exit status (or -1 if it did not exit normally within 30 s).
-  int terminate() {
-    kill(pid_, SIGTERM);
-    for (int i = 0; i < 3000; ++i) {
-      int status = 0;
-      if (waitpid(pid_, &status, WNOHANG) == pid_) {
-        pid_ = -1;
-        return WIFEXITED(status) ? WEXITSTATUS(status) : -1;
-      }
-      std::this_thread::sleep_for(std::chrono::milliseconds(10));
-    }
-    return -1;
-  }
-
- private:
-  pid_t pid_ = -1;
-  FILE* out_ = nullptr;
-  uint16_t port_ = 0;
-};
-
-void wait_ready(uint16_t port) {
-  for (int i = 0; i < 600; ++i) {
-    if (http_get(port, "/health").status == 200) return;
-    std::this_thread::sleep_for(std::chrono::milliseconds(100));
-  }
-  FAIL() << "/health never turned 200";
-}
 
 std::string act_body(uint64_t seed) {
   std::ifstream in(kImage, std::ios::binary);
