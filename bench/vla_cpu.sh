@@ -69,7 +69,7 @@ save_file({"noise": torch.randn((1, cfg["chunk_size"], cfg["max_action_dim"]), g
 PY
 
 echo "$family: lerobot (PyTorch fp32, $(nproc) threads): $ref_iterations runs after $warmup warm-up..." >&2
-tools/oracle/run.sh bench/lerobot_reference.py --checkpoint "$checkpoint" "${image_args[@]}" --state "$state" \
+tools/oracle/run.sh bench/lerobot_reference.py --checkpoint "$checkpoint" "${image_args[@]}" --state="$state" \
   --instruction "$instruction" --noise "$work/noise.safetensors" --warmup "$warmup" --iterations "$ref_iterations" \
   --out "$work/ref.safetensors" > "$work/ref.json"
 # fp32, then both half-precision paths. On a CPU with bf16 instructions bf16 runs natively; elsewhere (or under

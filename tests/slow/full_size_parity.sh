@@ -43,7 +43,7 @@ g = torch.Generator().manual_seed(1234)
 save_file({"noise": torch.randn((1, cfg["chunk_size"], cfg["max_action_dim"]), generator=g)}, sys.argv[2])
 PY
 # One engine at a time: a full-size pi0 takes ~16 GB in lerobot.
-tools/oracle/run.sh bench/lerobot_reference.py --checkpoint "$checkpoint" "${image_args[@]}" --state "$state" \
+tools/oracle/run.sh bench/lerobot_reference.py --checkpoint "$checkpoint" "${image_args[@]}" --state="$state" \
   --instruction "$instruction" --noise "$work/noise.safetensors" --warmup 0 --iterations 1 \
   --out "$work/ref.safetensors" > /dev/null
 "$tether" bench "$checkpoint" "${image_args[@]}" --state="$state" --instruction "$instruction" \
