@@ -29,7 +29,7 @@ struct Captured {
 
 std::vector<std::string> cases() {
   std::vector<std::string> out;
-  for (const char* family : {"pi0", "pi05"}) {
+  for (const char* family : {"pi0", "pi05", "pi05_fluxvla"}) {
     const fs::path root = fs::path(TETHER_FIXTURES_DIR) / family;
     if (!fs::exists(root)) continue;
     for (const auto& e : fs::directory_iterator(root))
