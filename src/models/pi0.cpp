@@ -509,7 +509,7 @@ void PiZero::prepare_image(const vision::Image& img, int64_t camera, float* out,
     return;
   }
   const auto& mean = pz_.image_mean.size() == 1 ? pz_.image_mean[0] : pz_.image_mean.at(std::size_t(camera));
-  const auto& std = pz_.image_std.size() == 1 ? pz_.image_std[0] : pz_.image_std.at(std::size_t(camera));
+  const auto& stdev = pz_.image_std.size() == 1 ? pz_.image_std[0] : pz_.image_std.at(std::size_t(camera));
   const int64_t n = int64_t(H) * W;
   if (img.height <= 0 || img.width <= 0 || img.rgb.size() != std::size_t(img.height) * std::size_t(img.width) * 3)
     throw Error(ErrorCode::invalid_argument, "image for camera '" + spec_.cameras[std::size_t(camera)] +
@@ -531,7 +531,7 @@ void PiZero::prepare_image(const vision::Image& img, int64_t camera, float* out,
   for (int c = 0; c < 3; ++c)
     for (int64_t i = 0; i < n; ++i) {
       const double x = src ? double(src[c * n + i]) : double(img.rgb[std::size_t(i * 3 + c)]);
-      out[c * n + i] = float((x - mean[std::size_t(c)]) / std[std::size_t(c)]);
+      out[c * n + i] = float((x - mean[std::size_t(c)]) / stdev[std::size_t(c)]);
     }
 }
 
