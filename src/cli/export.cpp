@@ -108,7 +108,10 @@ double export_checkpoint(const std::string& src, const std::string& out_dir, con
 
   // Write the deployment directory.
   fs::create_directories(out);
-  for (const auto& name : plan.copy) fs::copy_file(src_dir / name, out / name, fs::copy_options::overwrite_existing);
+  for (const auto& name : plan.copy) {
+    fs::create_directories((out / name).parent_path());  // a family's files may sit in sub-directories
+    fs::copy_file(src_dir / name, out / name, fs::copy_options::overwrite_existing);
+  }
   for (const auto& bundle : plan.bundles) {
     fs::create_directories(out / bundle.to);
     for (const auto& name : bundle.files)
@@ -117,6 +120,7 @@ double export_checkpoint(const std::string& src, const std::string& out_dir, con
   std::ofstream(out / "config.json", std::ios::binary | std::ios::trunc) << plan.config.dump(4) << "\n";
   const std::set<std::string> keep(plan.keep_dtype.begin(), plan.keep_dtype.end());
   for (const auto& name : weights) {
+    fs::create_directories((out / name).parent_path());
     if (name.ends_with(".safetensors")) convert_weights((src_dir / name).string(), (out / name).string(), a.precision, keep);
     else fs::copy_file(src_dir / name, out / name, fs::copy_options::overwrite_existing);  // the shard index
   }

@@ -139,7 +139,7 @@ int list_models(const Registry& reg, bool json) {
     std::cout << arr.dump(2) << "\n";
     return kExitOk;
   }
-  const char* row = "%-22s %-8s %-30s %7s %-10s %-6s %-16s %s\n";
+  const char* row = "%-22s %-12s %-30s %7s %-10s %-6s %-16s %s\n";
   std::printf(row, "id", "family", "source", "params", "tether", "local", "published", "license");
   for (const auto& e : reg.entries())
     std::printf(row, e.id.c_str(), e.family.c_str(), e.hf_repo.empty() ? "(bundled)" : e.hf_repo.c_str(),

@@ -86,8 +86,8 @@ const Shape& shape_of(const TensorStore& w, const std::string& name) { return w.
 
 // A Gemma decoder's sizes from its tensors (widths, depth, head size) and its variant (head counts).
 DecoderConfig gemma_config(const TensorStore& w, const std::string& prefix, const std::string& variant, bool adaptive,
-                           const std::string& where) {
-  const HeadCounts hc = variant_heads(variant, where);
+                           const std::string& where, const std::optional<std::array<int64_t, 2>>& heads = std::nullopt) {
+  const HeadCounts hc = heads ? HeadCounts{(*heads)[0], (*heads)[1]} : variant_heads(variant, where);
   DecoderConfig c;
   c.layers = count_layers(w, prefix + "layers.");
   if (c.layers == 0) throw Error(ErrorCode::format, w.label() + ": no tensors under " + prefix + "layers.");
@@ -97,14 +97,15 @@ DecoderConfig gemma_config(const TensorStore& w, const std::string& prefix, cons
   const Shape& k = shape_of(w, l0 + "self_attn.k_proj.weight");
   const Shape& q = shape_of(w, l0 + "self_attn.q_proj.weight");
   const Shape& gate = shape_of(w, l0 + "mlp.gate_proj.weight");
-  if (k.size() != 2 || q.size() != 2 || gate.size() != 2 || k[0] % c.kv_heads != 0)
+  if (k.size() != 2 || q.size() != 2 || gate.size() != 2 || c.kv_heads <= 0 || k[0] % c.kv_heads != 0)
     throw Error(ErrorCode::format, w.label() + ": " + l0 + "self_attn projections are not [out, in] matrices");
   c.hidden = q[1];
   c.head_dim = k[0] / c.kv_heads;
   c.intermediate = gate[0];
   if (q[0] != c.heads * c.head_dim)
     throw Error(ErrorCode::format, w.label() + ": " + l0 + "self_attn.q_proj.weight has " + std::to_string(q[0]) +
-                                       " rows; variant " + variant + " has " + std::to_string(c.heads) +
+                                       " rows; " + (heads ? std::string("the config") : "variant " + variant) +
+                                       " has " + std::to_string(c.heads) +
                                        " heads of " + std::to_string(c.head_dim) + " (from k_proj)");
   c.rms_norm_eps = 1e-6f;  // GemmaConfig's default, which lerobot keeps
   c.norm = adaptive ? NormKind::adaptive_rms : NormKind::rms_one_plus;
@@ -115,7 +116,8 @@ DecoderConfig gemma_config(const TensorStore& w, const std::string& prefix, cons
 }
 
 // PaliGemma's SigLIP tower from its tensors: patch and width from the patch embedding, depth by counting layers.
-VisionConfig siglip_config(const TensorStore& w, const std::string& prefix, int64_t image_size) {
+VisionConfig siglip_config(const TensorStore& w, const std::string& prefix, int64_t image_size,
+                           std::optional<int64_t> heads = std::nullopt) {
   VisionConfig c;
   const Shape& patch = shape_of(w, prefix + "embeddings.patch_embedding.weight");
   if (patch.size() != 4) throw Error(ErrorCode::format, w.label() + ": " + prefix + "embeddings.patch_embedding.weight is not 4-d");
@@ -124,10 +126,17 @@ VisionConfig siglip_config(const TensorStore& w, const std::string& prefix, int6
   c.patch = patch[2];
   c.layers = count_layers(w, prefix + "encoder.layers.");
   c.intermediate = shape_of(w, prefix + "encoder.layers.0.mlp.fc1.weight").at(0);
-  if (c.hidden % kSiglipHeadDim != 0)
-    throw Error(ErrorCode::unsupported, w.label() + ": SigLIP width " + std::to_string(c.hidden) +
-                                            " is not a whole number of 72-wide heads (so400m's)");
-  c.heads = c.hidden / kSiglipHeadDim;
+  if (heads) {
+    if (*heads <= 0 || c.hidden % *heads != 0)
+      throw Error(ErrorCode::format, w.label() + ": SigLIP width " + std::to_string(c.hidden) + " does not split into " +
+                                         std::to_string(*heads) + " heads");
+    c.heads = *heads;
+  } else {
+    if (c.hidden % kSiglipHeadDim != 0)
+      throw Error(ErrorCode::unsupported, w.label() + ": SigLIP width " + std::to_string(c.hidden) +
+                                              " is not a whole number of 72-wide heads (so400m's)");
+    c.heads = c.hidden / kSiglipHeadDim;
+  }
   c.image_size = image_size;
   c.layer_norm_eps = 1e-6f;
   c.position_ids = VisionConfig::PositionIds::sequential;
@@ -213,12 +222,15 @@ int state_bin(float x) {
 
 class PiZero final : public Model {
  public:
-  PiZero(const fs::path& dir, const Json& config, TensorStore weights, const LoadOptions& options, bool pi05);
+  PiZero(const fs::path& dir, const Json& config, TensorStore weights, const LoadOptions& options, bool pi05,
+         const PiZeroOptions& pizero);
   const ModelSpec& spec() const override { return spec_; }
   ModelOutput predict(const std::vector<ModelInput>& batch) override;
 
  private:
   std::string prompt(const ModelInput& item) const;
+  text::BatchEncoding encode_prompts(const std::vector<ModelInput>& batch, ModelOutput& out) const;
+  void prepare_image(const vision::Image& img, int64_t camera, float* out, std::vector<std::string>& warnings) const;
   void build_prefix(const std::vector<ModelInput>& batch, ModelOutput& out);
   void run_prefix();
   void denoise_step(Ptr<const float> x, float time, Ptr<float> v);
@@ -228,6 +240,7 @@ class PiZero final : public Model {
   void dump_array(const std::string& name, DType dtype, Shape shape, Ptr<const T> at);
 
   bool pi05_ = false;
+  PiZeroOptions pz_;
   ModelSpec spec_;
   TokenizerSettings tok_settings_;
   std::optional<text::PretrainedTokenizer> tokenizer_;
@@ -259,14 +272,15 @@ class PiZero final : public Model {
   int64_t images_run_ = 0;
 };
 
-PiZero::PiZero(const fs::path& dir, const Json& config, TensorStore store, const LoadOptions& options, bool pi05)
-    : pi05_(pi05) {
+PiZero::PiZero(const fs::path& dir, const Json& config, TensorStore store, const LoadOptions& options, bool pi05,
+               const PiZeroOptions& pizero)
+    : pi05_(pi05), pz_(pizero) {
   const cpu::Precision precision = options.precision;
   spec_.precision = precision;
   be_ = options.backend ? options.backend : backend::make_backend("cpu");
   backend::Backend& be = *be_;
   const std::string where = (dir / "config.json").string();
-  const FamilyDescriptor& family = pi05 ? pi05_family() : pi0_family();
+  const FamilyDescriptor& family = pz_.family ? *pz_.family : pi05 ? pi05_family() : pi0_family();
   spec_.family = family.name;
   spec_.stages = family.stages;
   spec_.missing_camera_rule = family.missing_camera_rule;
@@ -321,18 +335,38 @@ PiZero::PiZero(const fs::path& dir, const Json& config, TensorStore store, const
     throw Error(ErrorCode::format, where + ": the action has " + std::to_string(spec_.action_dim) +
                                        " values, more than max_action_dim " + std::to_string(spec_.max_action_dim));
 
-  tok_settings_ = read_tokenizer_settings(dir, config, pi05 ? 200 : 48);
-  const fs::path tok_dir = find_backbone_dir(dir, tok_settings_.name, "the tokenizer_processor step's tokenizer_name");
-  tokenizer_.emplace(text::load_pretrained_tokenizer(tok_dir.string()));
+  if (pz_.prompt == PiZeroOptions::Prompt::lerobot) {
+    tok_settings_ = read_tokenizer_settings(dir, config, pi05 ? 200 : 48);
+    const fs::path tok_dir = find_backbone_dir(dir, tok_settings_.name, "the tokenizer_processor step's tokenizer_name");
+    tokenizer_.emplace(text::load_pretrained_tokenizer(tok_dir.string()));
+  } else {
+    if (pz_.max_length <= 0) throw Error(ErrorCode::invalid_argument, where + ": the prompt's max_length must be > 0");
+    tok_settings_.name = pz_.tokenizer_model.string();
+    tok_settings_.max_length = pz_.max_length;
+    tokenizer_.emplace(text::load_gemma_sentencepiece(pz_.tokenizer_model.string()));
+    if (!tokenizer_->bos_token_id)
+      throw Error(ErrorCode::format, pz_.tokenizer_model.string() + ": no <bos> piece (the prompt starts with BOS)");
+  }
   spec_.tokenizer_source = tokenizer_->source;
+  if (pz_.image_norm == PiZeroOptions::ImageNorm::mean_std_255) {
+    const std::size_t n = spec_.cameras.size();
+    if (pz_.image_mean.size() != pz_.image_std.size() ||
+        (pz_.image_mean.size() != 1 && pz_.image_mean.size() != n))
+      throw Error(ErrorCode::invalid_argument, where + ": image mean/std for " + std::to_string(pz_.image_mean.size()) +
+                                                   " cameras, the model has " + std::to_string(n));
+    for (const auto& s : pz_.image_std)
+      for (double v : s)
+        if (!(v != 0.0) || !std::isfinite(v)) throw Error(ErrorCode::format, where + ": an image std is 0 or not finite");
+  }
 
   // Weights: upstream's key renames first, then the sizes the tensors imply.
   normalise_keys(store, pi05);
   const std::string vlm_variant = json_get_or<std::string>(config, "paligemma_variant", "gemma_2b", where);
   const std::string expert_variant = json_get_or<std::string>(config, "action_expert_variant", "gemma_300m", where);
-  text_cfg_ = gemma_config(store, kVlm + "language_model.", vlm_variant, false, where);
-  expert_cfg_ = gemma_config(store, kExpert, expert_variant, pi05, where);
-  const VisionConfig vision_cfg = siglip_config(store, kVlm + "vision_tower.vision_model.", spec_.image_height);
+  text_cfg_ = gemma_config(store, kVlm + "language_model.", vlm_variant, false, where, pz_.vlm_heads);
+  expert_cfg_ = gemma_config(store, kExpert, expert_variant, pi05, where, pz_.expert_heads);
+  const VisionConfig vision_cfg =
+      siglip_config(store, kVlm + "vision_tower.vision_model.", spec_.image_height, pz_.vision_heads);
   if (expert_cfg_.layers != text_cfg_.layers)
     throw Error(ErrorCode::format, store.label() + ": the action expert has " + std::to_string(expert_cfg_.layers) +
                                        " layers and the VLM " + std::to_string(text_cfg_.layers) +
@@ -346,8 +380,10 @@ PiZero::PiZero(const fs::path& dir, const Json& config, TensorStore store, const
   // the weight's dtype; images are not scaled.
   text_cfg_.embedding_scale = float(std::sqrt(double(text_cfg_.hidden)));
   const DType embed_dtype = store.entry(embed).dtype;
-  if (embed_dtype == DType::bf16) text_cfg_.embedding_scale = bf16_to_f32(f32_to_bf16(text_cfg_.embedding_scale));
-  if (embed_dtype == DType::f16) text_cfg_.embedding_scale = f16_to_f32(f32_to_f16(text_cfg_.embedding_scale));
+  if (pz_.embedding_scale_in_weight_dtype) {
+    if (embed_dtype == DType::bf16) text_cfg_.embedding_scale = bf16_to_f32(f32_to_bf16(text_cfg_.embedding_scale));
+    if (embed_dtype == DType::f16) text_cfg_.embedding_scale = f16_to_f32(f32_to_f16(text_cfg_.embedding_scale));
+  }
 
   weights_ = std::make_unique<Weights>(std::move(store));
   Weights& w = *weights_;
@@ -433,6 +469,73 @@ std::string PiZero::prompt(const ModelInput& item) const {
   return "Task: " + cleaned + ", State: " + state + ";\nAction: ";
 }
 
+// The batch's token ids, padded to max_length: through the preprocessor's tokenizer settings (lerobot), or
+// task_newline's ids padded on the right with id 0 and mask 0 (FluxVLA pads with pad_token_id 0).
+text::BatchEncoding PiZero::encode_prompts(const std::vector<ModelInput>& batch, ModelOutput& out) const {
+  if (pz_.prompt == PiZeroOptions::Prompt::lerobot) {
+    std::vector<std::string> texts;
+    for (const auto& item : batch) texts.push_back(prompt(item));
+    text::BatchOptions opts = tokenizer_->defaults;
+    opts.padding = tok_settings_.max_length_padding ? text::Padding::max_length : text::Padding::longest;
+    opts.max_length = tok_settings_.max_length;
+    opts.truncation = tok_settings_.truncation;
+    opts.pad_right = tok_settings_.pad_right;
+    return text::encode_batch(tokenizer_->tokenizer, texts, opts);
+  }
+  text::BatchEncoding enc;
+  enc.batch = int64_t(batch.size());
+  enc.length = tok_settings_.max_length;
+  enc.ids.assign(std::size_t(enc.batch * enc.length), 0);
+  enc.mask.assign(std::size_t(enc.batch * enc.length), 0);
+  for (int64_t b = 0; b < enc.batch; ++b) {
+    const TaskPrompt p = task_newline_prompt(*tokenizer_, batch[b].instruction, tok_settings_.max_length);
+    if (p.wrote_special)
+      out.warnings[b].push_back("the instruction writes a special token (<bos>, <eos>, <pad> or <unk>): it is encoded as "
+                                "that token, while FluxVLA's SentencePiece encodes it as plain text");
+    for (std::size_t j = 0; j < p.ids.size(); ++j) {
+      enc.ids[b * enc.length + int64_t(j)] = p.ids[j];
+      enc.mask[b * enc.length + int64_t(j)] = 1;
+    }
+  }
+  return enc;
+}
+
+// One camera's frame into `out` (3 x H x W floats, CHW) as the checkpoint's convention prepares it.
+void PiZero::prepare_image(const vision::Image& img, int64_t camera, float* out,
+                           std::vector<std::string>& warnings) const {
+  const int H = int(spec_.image_height), W = int(spec_.image_width);
+  if (pz_.image_norm == PiZeroOptions::ImageNorm::lerobot) {
+    vision::resize_with_pad_normalized(img, H, W, out, vision::TorchThreads::many, {}, 0.0f,
+                                       vision::PadPlacement::centred);
+    return;
+  }
+  const auto& mean = pz_.image_mean.size() == 1 ? pz_.image_mean[0] : pz_.image_mean.at(std::size_t(camera));
+  const auto& stdev = pz_.image_std.size() == 1 ? pz_.image_std[0] : pz_.image_std.at(std::size_t(camera));
+  const int64_t n = int64_t(H) * W;
+  if (img.height <= 0 || img.width <= 0 || img.rgb.size() != std::size_t(img.height) * std::size_t(img.width) * 3)
+    throw Error(ErrorCode::invalid_argument, "image for camera '" + spec_.cameras[std::size_t(camera)] +
+                                                 "' has no pixels or a buffer that does not match its size");
+  std::vector<float> resized;
+  const float* src = nullptr;  // CHW 0..255 when resized
+  if (img.height != H || img.width != W) {
+    std::vector<float> chw(std::size_t(img.height) * std::size_t(img.width) * 3);
+    const int64_t m = int64_t(img.height) * img.width;
+    for (int c = 0; c < 3; ++c)
+      for (int64_t i = 0; i < m; ++i) chw[std::size_t(c * m + i)] = float(img.rgb[std::size_t(i * 3 + c)]);
+    resized.resize(std::size_t(3 * n));
+    vision::resize_bilinear(chw.data(), 3, img.height, img.width, H, W, resized.data());
+    src = resized.data();
+    warnings.push_back("camera '" + spec_.cameras[std::size_t(camera)] + "': " + std::to_string(img.height) + "x" +
+                       std::to_string(img.width) + " frame resized to " + std::to_string(H) + "x" + std::to_string(W) +
+                       " with bilinear interpolation, not FluxVLA's PIL resize (send frames at the model's size)");
+  }
+  for (int c = 0; c < 3; ++c)
+    for (int64_t i = 0; i < n; ++i) {
+      const double x = src ? double(src[c * n + i]) : double(img.rgb[std::size_t(i * 3 + c)]);
+      out[c * n + i] = float((x - mean[std::size_t(c)]) / stdev[std::size_t(c)]);
+    }
+}
+
 void PiZero::build_prefix(const std::vector<ModelInput>& batch, ModelOutput& out) {
   backend::Backend& be = *be_;
   const auto t0 = std::chrono::steady_clock::now();
@@ -450,8 +553,7 @@ void PiZero::build_prefix(const std::vector<ModelInput>& batch, ModelOutput& out
       auto it = batch[b].images.find(spec_.cameras[c]);
       if (it == batch[b].images.end()) continue;
       host_pixels_.resize(host_pixels_.size() + std::size_t(img_elems));
-      vision::resize_with_pad_normalized(it->second, int(H), int(W), host_pixels_.data() + host_pixels_.size() - img_elems,
-                                         vision::TorchThreads::many, {}, 0.0f, vision::PadPlacement::centred);
+      prepare_image(it->second, c, host_pixels_.data() + host_pixels_.size() - img_elems, out.warnings[b]);
       item_images[b].push_back(int64_t(image_camera.size()));
       image_camera.push_back(c);
     }
@@ -475,14 +577,7 @@ void PiZero::build_prefix(const std::vector<ModelInput>& batch, ModelOutput& out
   be.upload(host_pixels_.data(), int64_t(host_pixels_.size()), pixels_.at());
 
   // Language tokens: padded to max_length as upstream asks, then cut to the longest real row (the padding is masked).
-  std::vector<std::string> texts;
-  for (const auto& item : batch) texts.push_back(prompt(item));
-  text::BatchOptions opts = tokenizer_->defaults;
-  opts.padding = tok_settings_.max_length_padding ? text::Padding::max_length : text::Padding::longest;
-  opts.max_length = tok_settings_.max_length;
-  opts.truncation = tok_settings_.truncation;
-  opts.pad_right = tok_settings_.pad_right;
-  const text::BatchEncoding enc = text::encode_batch(tokenizer_->tokenizer, texts, opts);
+  const text::BatchEncoding enc = encode_prompts(batch, out);
   const int64_t L = enc.length;
   for (int64_t id : enc.ids)
     if (id < 0 || id >= text_cfg_.vocab)
@@ -555,7 +650,12 @@ void PiZero::build_prefix(const std::vector<ModelInput>& batch, ModelOutput& out
   prefix_masks(prefix_pad_, prefix_att_, B, Lp, host_mask_, host_pos_);
   be.upload(host_mask_.data(), B * Lp * Lp, prefix_mask_.at());
   be.upload(host_pos_.data(), B * Lp, prefix_pos_.at());
-  if (pi05_ && dumping()) {
+  if (pi05_ && pz_.prompt == PiZeroOptions::Prompt::task_newline && dumping()) {
+    // The normalised state, which this prompt does not carry (the model never sees it).
+    std::vector<float> st;
+    for (const auto& item : batch) st.insert(st.end(), item.state.begin(), item.state.end());
+    dump("pre.state", Tensor{DType::f32, {B, spec_.state_dim}, st.data(), nullptr});
+  } else if (pi05_ && dumping()) {
     // The normalised state and the bins the prompt carries.
     std::vector<float> st;
     std::vector<int64_t> bins;
@@ -628,7 +728,12 @@ void PiZero::run_prefix() {
 void PiZero::denoise_step(Ptr<const float> x_t, float time, Ptr<float> v) {
   backend::Backend& be = *be_;
   const int64_t B = B_, C = spec_.chunk_size, E = expert_cfg_.hidden, rows = B * C;
-  be.time_embedding(double(time), E, min_period_, max_period_, time_emb_.at());
+  if (pz_.float32_time) {
+    const std::vector<float> emb = fluxvla_time_embedding(time, E, min_period_, max_period_);
+    be.upload(emb.data(), E, time_emb_.at());
+  } else {
+    be.time_embedding(double(time), E, min_period_, max_period_, time_emb_.at());
+  }
   if (!pi05_) {
     // [action_in(x_t), time] -> action_time_mlp_in -> silu -> action_time_mlp_out.
     be.linear(*action_in_, x_t, rows, cat_.at(), false, /*ldy=*/2 * E);
@@ -713,7 +818,7 @@ ModelOutput PiZero::predict(const std::vector<ModelInput>& batch) {
   std::function<void(Ptr<const float>)> on_step0;
   if (dumping()) on_step0 = [&](Ptr<const float> v) { dump_array<float>("mid.velocity.step0", DType::f32, {B, C, A}, v); };
   out.steps_used = euler_sample(be, x_t_.at(), v_t_.at(), {B, C, A, spec_.action_dim},
-                                Schedule{1.0, 0.0, spec_.num_steps}, controls,
+                                Schedule{1.0, 0.0, spec_.num_steps, pz_.float32_time}, controls,
                                 [this](Ptr<const float> x, float time, Ptr<float> v) { denoise_step(x, time, v); },
                                 on_step0);
   out.timings.set("denoise", ms_since(t3));
@@ -731,12 +836,56 @@ ModelOutput PiZero::predict(const std::vector<ModelInput>& batch) {
 
 std::unique_ptr<Model> load_pi0(const fs::path& checkpoint_dir, const Json& config, TensorStore weights,
                                 const LoadOptions& options) {
-  return std::make_unique<PiZero>(checkpoint_dir, config, std::move(weights), options, /*pi05=*/false);
+  return std::make_unique<PiZero>(checkpoint_dir, config, std::move(weights), options, /*pi05=*/false, PiZeroOptions{});
 }
 
 std::unique_ptr<Model> load_pi05(const fs::path& checkpoint_dir, const Json& config, TensorStore weights,
                                  const LoadOptions& options) {
-  return std::make_unique<PiZero>(checkpoint_dir, config, std::move(weights), options, /*pi05=*/true);
+  return std::make_unique<PiZero>(checkpoint_dir, config, std::move(weights), options, /*pi05=*/true, PiZeroOptions{});
+}
+
+std::unique_ptr<Model> load_pi05_with(const fs::path& checkpoint_dir, const Json& config, TensorStore weights,
+                                      const LoadOptions& options, const PiZeroOptions& pizero) {
+  return std::make_unique<PiZero>(checkpoint_dir, config, std::move(weights), options, /*pi05=*/true, pizero);
+}
+
+TaskPrompt task_newline_prompt(const text::PretrainedTokenizer& tokenizer, const std::string& task, int max_length) {
+  if (!tokenizer.bos_token_id) throw Error(ErrorCode::format, tokenizer.source + ": no <bos> token");
+  std::string cleaned = python_strip(task);
+  std::replace(cleaned.begin(), cleaned.end(), '_', ' ');
+  std::replace(cleaned.begin(), cleaned.end(), '\n', ' ');
+  TaskPrompt p;
+  p.ids.push_back(*tokenizer.bos_token_id);
+  const std::vector<int32_t> text = tokenizer.tokenizer.encode(cleaned, /*add_special_tokens=*/false);
+  const std::vector<int32_t> newline = tokenizer.tokenizer.encode("\n", /*add_special_tokens=*/false);
+  p.ids.insert(p.ids.end(), text.begin(), text.end());
+  p.ids.insert(p.ids.end(), newline.begin(), newline.end());
+  for (const char* special : {"<bos>", "<eos>", "<pad>", "<unk>"})
+    if (const auto id = tokenizer.tokenizer.token_to_id(special))
+      p.wrote_special = p.wrote_special || std::find(text.begin(), text.end(), *id) != text.end();
+  if (max_length > 0 && int64_t(p.ids.size()) > max_length) p.ids.resize(std::size_t(max_length));
+  return p;
+}
+
+std::vector<float> fluxvla_time_embedding(float time, int64_t width, double min_period, double max_period) {
+  if (width <= 0 || width % 2 != 0)
+    throw Error(ErrorCode::invalid_argument, "time embedding width " + std::to_string(width) + " is not even");
+  const int64_t half = width / 2;
+  // torch.linspace(0, 1, half) in float32: step rounded to float32, then each value rounded once from
+  // start + step * i (first half) or end - step * (half - 1 - i) (second half).
+  const float step = half > 1 ? float(1.0) / float(half - 1) : 0.0f;
+  const float min_p = float(min_period), ratio = float(max_period / min_period), pi_f = float(3.14159265358979323846);
+  std::vector<float> out(static_cast<std::size_t>(width));
+  for (int64_t i = 0; i < half; ++i) {
+    const float fraction =
+        half == 1 ? 0.0f : i < half / 2 ? float(double(step) * double(i)) : float(1.0 - double(step) * double(half - 1 - i));
+    const float period = min_p * float(std::pow(double(ratio), double(fraction)));
+    const float scale = (1.0f / period) * 2.0f * pi_f;
+    const float arg = time * scale;
+    out[std::size_t(i)] = std::sin(arg);
+    out[std::size_t(half + i)] = std::cos(arg);
+  }
+  return out;
 }
 
 }  // namespace tether::models

@@ -6,6 +6,7 @@
 #include "core/hash.h"
 #include "models/family.h"
 #include "models/pi0.h"
+#include "models/pi05_fluxvla.h"
 #include "models/smolvla.h"
 
 namespace tether::models {
@@ -17,6 +18,7 @@ const std::vector<const FamilyDescriptor*>& families() {
       &smolvla_family(),
       &pi0_family(),
       &pi05_family(),
+      &pi05_fluxvla_family(),
   };
   return kFamilies;
 }

@@ -327,21 +327,21 @@ Json bos_eos_template(const std::optional<std::pair<std::string, int32_t>>& bos,
 
 }  // namespace
 
-PretrainedTokenizer load_pretrained_tokenizer(const std::string& dir) {
-  namespace fs = std::filesystem;
-  const std::string json_path = dir + "/tokenizer.json";
-  const std::string model_path = dir + "/tokenizer.model";
-  const std::string config_path = dir + "/tokenizer_config.json";
-  std::error_code ec;
-  const bool has_json = fs::exists(json_path, ec), has_model = fs::exists(model_path, ec);
-  if (!has_json && !has_model)
-    throw Error(ErrorCode::not_found,
-                dir + ": no tokenizer.json or tokenizer.model (" + json_path + " not found)");
-  Json config = Json::object();
-  if (fs::exists(config_path, ec)) config = read_json_file<Json>(config_path);
-  if (!config.is_object())
-    throw Error(ErrorCode::format, config_path + ": top level is not an object");
+namespace {
 
+// What load_pretrained_tokenizer builds, before it becomes a PretrainedTokenizer.
+struct LoadedTokenizer {
+  std::shared_ptr<TokenizerImpl> impl;
+  std::string tokenizer_class;
+  BatchOptions defaults;
+  std::optional<int32_t> bos_token_id, eos_token_id, pad_token_id;
+  std::string source;
+};
+
+// The tokenizer from tokenizer.json (has_json) or else tokenizer.model, with `config` standing for
+// tokenizer_config.json (`config_path` names it in errors).
+LoadedTokenizer load_tokenizer_files(const std::string& json_path, bool has_json, const std::string& model_path,
+                                     const Json& config, const std::string& config_path) {
   BuildOptions opt;
   std::string cls = json_get_or<std::string>(config, "tokenizer_class", "", config_path);
   std::string base = cls;
@@ -502,9 +502,7 @@ PretrainedTokenizer load_pretrained_tokenizer(const std::string& dir) {
                             config_path + ": add_bos_token/add_eos_token template");
   }
 
-  Tokenizer tok(impl);
-  PretrainedTokenizer out{tok,          cls,          BatchOptions{}, std::nullopt,
-                          std::nullopt, std::nullopt, source};
+  LoadedTokenizer out{impl, cls, BatchOptions{}, std::nullopt, std::nullopt, std::nullopt, source};
   out.defaults.truncate_right = side(config, "truncation_side", "right", config_path) == "right";
   // GemmaTokenizer's class attribute is padding_side = "left"; the base class's is "right".
   out.defaults.pad_right =
@@ -514,6 +512,35 @@ PretrainedTokenizer load_pretrained_tokenizer(const std::string& dir) {
   out.pad_token_id = id_of("pad_token");
   if (out.pad_token_id) out.defaults.pad_token_id = *out.pad_token_id;
   return out;
+}
+
+}  // namespace
+
+PretrainedTokenizer load_pretrained_tokenizer(const std::string& dir) {
+  namespace fs = std::filesystem;
+  const std::string json_path = dir + "/tokenizer.json";
+  const std::string model_path = dir + "/tokenizer.model";
+  const std::string config_path = dir + "/tokenizer_config.json";
+  std::error_code ec;
+  const bool has_json = fs::exists(json_path, ec), has_model = fs::exists(model_path, ec);
+  if (!has_json && !has_model)
+    throw Error(ErrorCode::not_found,
+                dir + ": no tokenizer.json or tokenizer.model (" + json_path + " not found)");
+  Json config = Json::object();
+  if (fs::exists(config_path, ec)) config = read_json_file<Json>(config_path);
+  if (!config.is_object())
+    throw Error(ErrorCode::format, config_path + ": top level is not an object");
+  LoadedTokenizer t = load_tokenizer_files(json_path, has_json, model_path, config, config_path);
+  return {Tokenizer(t.impl), t.tokenizer_class, t.defaults, t.bos_token_id, t.eos_token_id, t.pad_token_id, t.source};
+}
+
+PretrainedTokenizer load_gemma_sentencepiece(const std::string& model_path) {
+  std::error_code ec;
+  if (!std::filesystem::exists(model_path, ec)) throw Error(ErrorCode::not_found, model_path + ": not found");
+  const Json config = {{"tokenizer_class", "GemmaTokenizer"}};
+  LoadedTokenizer t = load_tokenizer_files("", false, model_path, config,
+                                           model_path + " (read as a GemmaTokenizer without tokenizer_config.json)");
+  return {Tokenizer(t.impl), t.tokenizer_class, t.defaults, t.bos_token_id, t.eos_token_id, t.pad_token_id, t.source};
 }
 
 std::vector<int32_t> Tokenizer::encode(std::string_view text, bool add_special_tokens) const {

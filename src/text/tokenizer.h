@@ -45,6 +45,7 @@ class Tokenizer {
   std::shared_ptr<const TokenizerImpl> impl_;  // immutable after load; copies share it
 
   friend PretrainedTokenizer load_pretrained_tokenizer(const std::string&);
+  friend PretrainedTokenizer load_gemma_sentencepiece(const std::string&);
   friend BatchEncoding encode_batch(const Tokenizer&, const std::vector<std::string>&,
                                     const BatchOptions&, bool);
 };
@@ -110,5 +111,13 @@ struct PretrainedTokenizer {
   std::string source;  // the file the vocabulary came from: <dir>/tokenizer.json or tokenizer.model
 };
 PretrainedTokenizer load_pretrained_tokenizer(const std::string& dir);
+
+// A SentencePiece model file on its own, converted as load_pretrained_tokenizer converts a
+// tokenizer.model for tokenizer_class GemmaTokenizer with no other tokenizer_config.json entry: the
+// class's default special tokens, add_bos_token / add_eos_token false (so encode adds nothing),
+// padding side left. For checkpoints whose tokenizer directory is not a transformers one (FluxVLA
+// saves tokenizer.model next to a tokenizer_config.json naming its own "PaligemmaTokenizer"
+// wrapper around libsentencepiece). Errors name the file (not_found when it does not exist).
+PretrainedTokenizer load_gemma_sentencepiece(const std::string& model_path);
 
 }  // namespace tether::text

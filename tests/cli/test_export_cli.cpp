@@ -4,6 +4,7 @@
 
 #include <filesystem>
 #include <fstream>
+#include <set>
 
 #include "cli_runner.h"
 #include "core/json_util.h"
@@ -109,4 +110,37 @@ TEST(ExportCli, CarriesAnEmbodimentThatMatchesTheModel) {
   EXPECT_EQ(unknown.code, 2);
   EXPECT_NE(unknown.err.find("no-such-arm"), std::string::npos) << unknown.err;
   fs::remove_all(out);
+}
+
+// A FluxVLA run directory exports as a FluxVLA run directory: the newest step's weights (FluxVLA's names, the chosen
+// precision), its config, statistics and tokenizer; the export loads through the same family and validates.
+TEST(ExportCli, FluxvlaRunDirectoryExportsAsItsOwnLayout) {
+  const std::string src = std::string(TETHER_FIXTURES_DIR) + "/pi05_fluxvla/libero_f32/checkpoint";
+  const std::string step = "checkpoints/step-000120-epoch-03-loss=0.0170.safetensors";
+  const fs::path a = fresh("fluxvla");
+  const CliRun r = run_tether("export " + src + " -o " + a.string());
+  ASSERT_EQ(r.code, 0) << r.err;
+  std::set<std::string> files;
+  for (const auto& e : fs::recursive_directory_iterator(a))
+    if (e.is_regular_file()) files.insert(fs::relative(e.path(), a).string());
+  EXPECT_EQ(files, (std::set<std::string>{"VERIFICATION.md", "tether_export.json", "config.json", "config.yaml",
+                                          "dataset_statistics.json", "llm_backbone_config.json", step,
+                                          "tokenizer/tokenizer.model", "tokenizer/tokenizer_config.json"}));
+  EXPECT_EQ(Json::parse(read(a / "config.json")), Json::parse(read(fs::path(src) / "config.json")));  // FluxVLA's own
+  EXPECT_NE(read(a / "VERIFICATION.md").find("oracle-libero_f32"), std::string::npos);
+  const CliRun ok = run_tether("validate export " + a.string());
+  EXPECT_EQ(ok.code, 0) << ok.out << ok.err;
+  const std::string inputs = std::string(TETHER_FIXTURES_DIR) + "/pi05_fluxvla/libero_f32/inputs/";
+  const CliRun predict = run_tether("predict " + a.string() + " --image image=" + inputs + "image_0.png --image wrist_image=" +
+                                    inputs + "wrist_image_0.png --state 0,0,0,0,0,0,0,0 --instruction go --json");
+  EXPECT_EQ(predict.code, 0) << predict.err;
+
+  const fs::path b = fresh("fluxvla_bf16");
+  ASSERT_EQ(run_tether("export " + src + " -o " + b.string() + " --precision bf16").code, 0);
+  const SafeTensorsFile f = SafeTensorsFile::open((b / step).string());
+  EXPECT_EQ(f.entry("llm_expert.layers.0.mlp.down_proj.weight").dtype, DType::bf16);
+  EXPECT_TRUE(f.contains("llm_expert.embed_tokens.weight"));  // FluxVLA's strict load still finds every parameter
+  EXPECT_EQ(run_tether("validate export " + b.string() + " --threshold 0.5").code, 0);
+  fs::remove_all(a);
+  fs::remove_all(b);
 }

@@ -55,7 +55,9 @@ TEST(ModelsCli, ListShowsTheHeadlineFigure) {
   const std::string flux = line_with(r.out, "pi05-libero10-fluxvla");
   EXPECT_NE(flux.find("limxdynamics/FluxVLAEngine"), std::string::npos) << r.out;
   EXPECT_NE(flux.find("LIBERO-10 95.6%"), std::string::npos) << r.out;
-  EXPECT_NE(flux.find("not yet"), std::string::npos) << r.out;
+  EXPECT_NE(flux.find("pi05_fluxvla"), std::string::npos) << r.out;
+  EXPECT_NE(flux.find("supported"), std::string::npos) << r.out;
+  EXPECT_EQ(flux.find("not yet"), std::string::npos) << r.out;
   EXPECT_NE(line_with(r.out, "smolvla-demo").find(" - "), std::string::npos) << r.out;
 }
 
@@ -108,10 +110,10 @@ TEST(ModelsCli, FluxvlaEntryPointsAtItsFolderOfTheRepo) {
   const CliRun r = run_tether("models info pi05-libero10-fluxvla --json --target orin-64");
   ASSERT_EQ(r.code, 0) << r.err;
   const Json j = Json::parse(r.out);
-  EXPECT_EQ(j["family"], "pi05");
+  EXPECT_EQ(j["family"], "pi05_fluxvla");
   EXPECT_EQ(j["hf_repo"], "limxdynamics/FluxVLAEngine");
   EXPECT_EQ(j["subfolder"], "pi05_paligemma_libero_10_full_finetune_bs64");
-  EXPECT_FALSE(j["supported"].get<bool>());
+  EXPECT_TRUE(j["supported"].get<bool>());
   EXPECT_EQ(j["published"], "LIBERO-10 95.6%");
   ASSERT_EQ(j["figures"].size(), 1u);
   EXPECT_EQ(j["figures"][0]["benchmark"], "LIBERO-10 / LIBERO-Long");

@@ -1,5 +1,6 @@
 // pi0 and pi0.5 parity: every oracle fixture case of both families is run through Tether end to end (image files,
-// robot-unit state, instruction, the oracle's noise) and compared with upstream lerobot, intermediates included.
+// robot-unit state, instruction, the oracle's noise) and compared with upstream lerobot, intermediates included; the
+// FluxVLA cases against FluxVLA's processing restated around lerobot's network (tests/fixtures/pi05_fluxvla).
 #include <gtest/gtest.h>
 
 #include <cmath>
@@ -29,7 +30,7 @@ struct Captured {
 
 std::vector<std::string> cases() {
   std::vector<std::string> out;
-  for (const char* family : {"pi0", "pi05"}) {
+  for (const char* family : {"pi0", "pi05", "pi05_fluxvla"}) {
     const fs::path root = fs::path(TETHER_FIXTURES_DIR) / family;
     if (!fs::exists(root)) continue;
     for (const auto& e : fs::directory_iterator(root))
@@ -180,10 +181,11 @@ std::string test_name(const ::testing::TestParamInfo<std::string>& info) {
 INSTANTIATE_TEST_SUITE_P(Fixtures, PiParity, ::testing::ValuesIn(cases()), test_name);
 
 TEST(PiParityFixtures, Present) {
-  int pi0 = 0, pi05 = 0;
-  for (const auto& c : cases()) (c.rfind("pi05/", 0) == 0 ? pi05 : pi0)++;
+  int pi0 = 0, pi05 = 0, fluxvla = 0;
+  for (const auto& c : cases()) (c.rfind("pi05/", 0) == 0 ? pi05 : c.rfind("pi05_fluxvla/", 0) == 0 ? fluxvla : pi0)++;
   EXPECT_GE(pi0, 4) << "pi0 fixtures missing under tests/fixtures/pi0";
   EXPECT_GE(pi05, 4) << "pi05 fixtures missing under tests/fixtures/pi05";
+  EXPECT_GE(fluxvla, 2) << "FluxVLA fixtures missing under tests/fixtures/pi05_fluxvla";
 }
 
 }  // namespace

@@ -145,8 +145,9 @@ std::vector<int> euler_sample(backend::Backend& be, backend::Ptr<float> x, backe
   int64_t active = B;
   const double dt = (schedule.end - schedule.start) / double(num_steps);
   const float dt32 = float(dt);
-  for (int64_t step = 0; step < num_steps && active > 0; ++step) {
-    const double time = schedule.start + double(step) * dt;
+  float time32 = float(schedule.start);
+  for (int64_t step = 0; step < num_steps && active > 0; ++step, time32 += dt32) {
+    const double time = schedule.float32_time ? double(time32) : schedule.start + double(step) * dt;
     velocity(x, float(time), v);
     if (step == 0 && on_step0_velocity) on_step0_velocity(v);
     for (int64_t b = 0; b < B; ++b) {

@@ -58,13 +58,17 @@ struct SampleShape {
 struct Schedule {
   double start = 1.0, end = 0.0;
   int64_t steps = 10;
+  // false: time k is start + k * dt in float64, rounded to float32 (lerobot's loop). true: the time is a float32 that
+  // starts at start and gets float32(dt) added after each step (FluxVLA's `time += dt` on a float32 tensor), which
+  // drifts from the former by a few float32 steps.
+  bool float32_time = false;
 };
 
 // velocity(x, time, v): the model's velocity for the whole batch at `time`, written to v (same layout as x).
 using VelocityFn = std::function<void(backend::Ptr<const float> x, float time, backend::Ptr<float> v)>;
 
 // Euler in place on the backend's x: x += dt * v at times start + k * dt, times and dt rounded from float64 as
-// lerobot does. `v` is the caller's [batch, chunk, width] buffer the velocity is written to. With default controls the
+// lerobot does (or accumulated in float32: Schedule::float32_time). `v` is the caller's [batch, chunk, width] buffer the velocity is written to. With default controls the
 // arithmetic is exactly that loop and nothing is allocated per step. RTC guidance needs the noise-at-1 direction.
 // `on_step0_velocity`, when set, sees the model's first velocity (before any guidance).
 // Returns the velocity evaluations each item used (schedule.steps unless it stopped early).
