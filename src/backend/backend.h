@@ -73,6 +73,10 @@ const char* activation_name(Activation a);
 // RMSNorm flavours: Llama's x * rsqrt(mean(x^2) + eps) * w; Gemma's ... * (1 + w).
 enum class RmsScale { weight, one_plus_weight };
 
+// How RoPE angles are rounded in float32: lerobot's apply_rope (SmolVLA) divides the position by the timescale
+// wavelength^(2i/D); transformers' rotary embedding (Gemma: pi0, pi0.5) multiplies it by inv_freq = 1 / base^(2i/D).
+enum class RopeAngles { timescale_division, inverse_frequency };
+
 // Multiply-add counts of the matrix products run so far (2 per multiply-add), for benchmarks' GFLOP/s.
 struct FlopCounter {
   double linear = 0, attention = 0, other = 0;
@@ -128,7 +132,8 @@ class Backend {
                          int64_t heads, int64_t kv_heads, int64_t head_dim, float scale, Ptr<float> out) = 0;
   // Rotary embedding in place on x[batch, len, heads, head_dim] (split-halves layout), positions [batch, len].
   virtual void rope(Ptr<float> x, int64_t batch, int64_t len, int64_t heads, int64_t head_dim,
-                    Ptr<const int64_t> positions, float max_wavelength) = 0;
+                    Ptr<const int64_t> positions, float max_wavelength,
+                    RopeAngles angles = RopeAngles::timescale_division) = 0;
   virtual void activate(Ptr<float> x, int64_t n, Activation act) = 0;
   // Gated linear unit over rows of [gate | up] (width 2 * n): out[r] = act(gate) * up; out is [rows, n].
   virtual void gated(Ptr<const float> gate_up, int64_t rows, int64_t n, Activation act, Ptr<float> out) = 0;

@@ -111,6 +111,7 @@ DecoderConfig gemma_config(const TensorStore& w, const std::string& prefix, cons
   c.norm = adaptive ? NormKind::adaptive_rms : NormKind::rms_one_plus;
   c.mlp = MlpKind::geglu_tanh;
   c.rope_wavelength = 10000.0f;  // GemmaConfig's rope_theta
+  c.rope_angles = backend::RopeAngles::inverse_frequency;  // transformers' GemmaRotaryEmbedding
   if (adaptive) c.cond_dim = c.hidden;  // adarms_cond_dim = the expert's width
   return c;
 }
@@ -376,14 +377,12 @@ PiZero::PiZero(const fs::path& dir, const Json& config, TensorStore store, const
   const std::string embed = kVlm + "language_model.embed_tokens.weight";
   const Shape& embed_shape = shape_of(store, embed);
   text_cfg_.vocab = embed_shape.empty() ? 0 : embed_shape[0];
-  // transformers >= 5.4 scales inside the embedding (GemmaTextScaledWordEmbedding): sqrt(width) as float32, cast to
-  // the weight's dtype; images are not scaled.
+  // transformers >= 5.4 scales inside the embedding (GemmaTextScaledWordEmbedding), once: sqrt(width) as float32,
+  // cast to the dtype the embedding weight has when it runs. Tether computes the embedding from float32 rows, as
+  // upstream does in float32 (config dtype float32, or the policy cast to float32), so the scale stays float32 even
+  // for a bf16 file (rounding it to bf16, 45.25 for 45.2548 at width 2048, is what upstream's all-bf16 run does).
+  // Images are not scaled.
   text_cfg_.embedding_scale = float(std::sqrt(double(text_cfg_.hidden)));
-  const DType embed_dtype = store.entry(embed).dtype;
-  if (pz_.embedding_scale_in_weight_dtype) {
-    if (embed_dtype == DType::bf16) text_cfg_.embedding_scale = bf16_to_f32(f32_to_bf16(text_cfg_.embedding_scale));
-    if (embed_dtype == DType::f16) text_cfg_.embedding_scale = f16_to_f32(f32_to_f16(text_cfg_.embedding_scale));
-  }
 
   weights_ = std::make_unique<Weights>(std::move(store));
   Weights& w = *weights_;

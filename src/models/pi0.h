@@ -40,9 +40,6 @@ struct PiZeroOptions {
   // Attention head counts (query, key/value); nullopt: the Gemma variant's. SigLIP's; nullopt: 72-wide heads.
   std::optional<std::array<int64_t, 2>> vlm_heads, expert_heads;
   std::optional<int64_t> vision_heads;
-  // lerobot (transformers' scaled embedding): sqrt(width) is rounded to the stored embedding dtype. false: the
-  // float32 sqrt(width) whatever the dtype (FluxVLA multiplies by math.sqrt).
-  bool embedding_scale_in_weight_dtype = true;
   // pi0.5's time. false: lerobot's (times from float64, sinusoid in float64). true: FluxVLA's: the time accumulated
   // in float32 (Schedule::float32_time) and its sinusoid computed in float32 (fluxvla_time_embedding).
   bool float32_time = false;

@@ -100,8 +100,9 @@ class CpuBackend final : public Backend {
                    heads, kv_heads, head_dim, scale, out.address());
   }
   void rope(Ptr<float> x, int64_t batch, int64_t len, int64_t heads, int64_t head_dim, Ptr<const int64_t> positions,
-            float max_wavelength) override {
-    cpu::rope(x.address(), batch, len, heads, head_dim, positions.address(), max_wavelength);
+            float max_wavelength, backend::RopeAngles angles) override {
+    cpu::rope(x.address(), batch, len, heads, head_dim, positions.address(), max_wavelength,
+              angles == backend::RopeAngles::inverse_frequency);
   }
   void activate(Ptr<float> x, int64_t n, Activation act) override {
     if (act == Activation::silu) cpu::silu(x.address(), n);

@@ -110,7 +110,7 @@ void rms_norm(const float* x, int64_t rows, int64_t n, const float* weight, floa
 }
 
 void rope(float* x, int64_t batch, int64_t len, int64_t heads, int64_t head_dim, const int64_t* positions,
-          float max_wavelength) {
+          float max_wavelength, bool inverse_frequency) {
   require(head_dim > 0 && head_dim % 2 == 0, "rope", [&] { return "head_dim must be even, got " + std::to_string(head_dim); });
   const int64_t half = head_dim / 2;
   // timescale[i] = max_wavelength ** (float(2 / D) * i), a float32 power; computing it in double and
@@ -119,8 +119,11 @@ void rope(float* x, int64_t batch, int64_t len, int64_t heads, int64_t head_dim,
   timescale.resize(std::size_t(half));
   const float step = float(2.0 / double(head_dim));
   for (int64_t i = 0; i < half; ++i) {
-    const float exponent = step * float(i);
-    timescale[std::size_t(i)] = float(std::pow(double(max_wavelength), double(exponent)));
+    // transformers: arange(0, D, 2) / D in float32, base ** that, then 1.0 / it, all float32 (stored here as the
+    // inverse frequency; the angle multiplies by it).
+    const float exponent = inverse_frequency ? float(2 * i) / float(head_dim) : step * float(i);
+    const float power = float(std::pow(double(max_wavelength), double(exponent)));
+    timescale[std::size_t(i)] = inverse_frequency ? 1.0f / power : power;
   }
   const float* ts = timescale.data();
   const int64_t tokens = batch * len;
@@ -134,7 +137,7 @@ void rope(float* x, int64_t batch, int64_t len, int64_t heads, int64_t head_dim,
     for (int64_t t = 0; t < tokens; ++t) {
       const float pos = float(positions[t]);
       for (int64_t i = 0; i < half; ++i) {
-        const float radians = pos / ts[i];
+        const float radians = inverse_frequency ? pos * ts[i] : pos / ts[i];
         sn[i] = std::sin(radians);
         cs[i] = std::cos(radians);
       }

@@ -71,15 +71,17 @@ void ActionExpert::forward(backend::Backend& be, Ptr<float> x, int64_t B, int64_
         const Ptr<float> kc = cache.k_at(li, b, 0), vc = cache.v_at(li, b, 0);
         be.copy_rows(scratch_.qkv.at(b * len * qkv_dim + q_dim), qkv_dim, kc + Lp * kv_dim, kv_dim, len, kv_dim);
         be.copy_rows(scratch_.qkv.at(b * len * qkv_dim + q_dim + kv_dim), qkv_dim, vc + Lp * kv_dim, kv_dim, len, kv_dim);
-        be.rope(scratch_.q.at(b * len * q_dim), 1, len, H, hd, joint_pos + b * len, cfg_.rope_wavelength);
-        be.rope(kc + Lp * kv_dim, 1, len, KvH, hd, joint_pos + b * len, cfg_.rope_wavelength);
+        be.rope(scratch_.q.at(b * len * q_dim), 1, len, H, hd, joint_pos + b * len, cfg_.rope_wavelength,
+                cfg_.rope_angles);
+        be.rope(kc + Lp * kv_dim, 1, len, KvH, hd, joint_pos + b * len, cfg_.rope_wavelength, cfg_.rope_angles);
         be.attention(scratch_.q.at(b * len * q_dim), q_dim, kc, vc, kv_dim, joint_mask + b * len * (Lp + len), 1, len,
                      Lp + len, H, KvH, hd, scale_qk, scratch_.attn.at(b * len * q_dim));
       }
     } else {
       be.linear(*X.qkv, scratch_.normed.at(), rows, scratch_.q.at());
       for (int64_t b = 0; b < B; ++b) {
-        be.rope(scratch_.q.at(b * len * q_dim), 1, len, H, hd, cross_pos + b * len, cfg_.rope_wavelength);
+        be.rope(scratch_.q.at(b * len * q_dim), 1, len, H, hd, cross_pos + b * len, cfg_.rope_wavelength,
+                cfg_.rope_angles);
         be.attention(scratch_.q.at(b * len * q_dim), q_dim, cross_k_[r].at(b * Lp * kv_dim), cross_v_[r].at(b * Lp * kv_dim),
                      kv_dim, cross_mask + b * len * Lp, 1, len, Lp, H, KvH, hd, scale_qk,
                      scratch_.attn.at(b * len * q_dim));

@@ -179,9 +179,10 @@ void DecoderStack::forward(backend::Backend& be, Ptr<float> x, int64_t B, int64_
       const Ptr<float> kc = cache.k_at(int64_t(li), b, 0), vc = cache.v_at(int64_t(li), b, 0);
       be.copy_rows(scratch_.qkv.at(b * len * stride + k_off), stride, kc, kv_dim, len, kv_dim);
       be.copy_rows(scratch_.qkv.at(b * len * stride + k_off + kv_dim), stride, vc, kv_dim, len, kv_dim);
-      be.rope(kc, 1, len, KvH, hd, positions + b * len, cfg_.rope_wavelength);
+      be.rope(kc, 1, len, KvH, hd, positions + b * len, cfg_.rope_wavelength, cfg_.rope_angles);
       if (kv_only) continue;
-      be.rope(scratch_.q.at(b * len * q_dim), 1, len, H, hd, positions + b * len, cfg_.rope_wavelength);
+      be.rope(scratch_.q.at(b * len * q_dim), 1, len, H, hd, positions + b * len, cfg_.rope_wavelength,
+              cfg_.rope_angles);
       be.attention(scratch_.q.at(b * len * q_dim), q_dim, kc, vc, kv_dim, mask + b * len * len, 1, len, len, H, KvH, hd,
                    scale_qk, scratch_.attn.at(b * len * q_dim));
     }

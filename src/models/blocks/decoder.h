@@ -24,6 +24,7 @@ struct DecoderConfig {
   NormKind norm = NormKind::rms;
   MlpKind mlp = MlpKind::swiglu;
   float rope_wavelength = 10000.0f;
+  backend::RopeAngles rope_angles = backend::RopeAngles::timescale_division;
   float embedding_scale = 1.0f;  // token embeddings are multiplied by this (sqrt(hidden) for Gemma and SmolVLA)
   int64_t cond_dim = 0;          // adaptive norms: width of the conditioning vector (pi0.5's time embedding)
   // Reads a transformers LlamaConfig object; absent fields take the upstream class defaults.
