@@ -377,12 +377,13 @@ PiZero::PiZero(const fs::path& dir, const Json& config, TensorStore store, const
   const std::string embed = kVlm + "language_model.embed_tokens.weight";
   const Shape& embed_shape = shape_of(store, embed);
   text_cfg_.vocab = embed_shape.empty() ? 0 : embed_shape[0];
-  // transformers >= 5.4 scales inside the embedding (GemmaTextScaledWordEmbedding), once: sqrt(width) as float32,
-  // cast to the dtype the embedding weight has when it runs. Tether computes the embedding from float32 rows, as
-  // upstream does in float32 (config dtype float32, or the policy cast to float32), so the scale stays float32 even
-  // for a bf16 file (rounding it to bf16, 45.25 for 45.2548 at width 2048, is what upstream's all-bf16 run does).
-  // Images are not scaled.
+  // transformers >= 5.4 scales inside the embedding (GemmaTextScaledWordEmbedding), once: sqrt(width) as a float32
+  // buffer cast to the model's dtype. lerobot builds the model in the config's `dtype`, so with "bfloat16" the
+  // buffer is rounded to bf16 (45.25 for 45.2548 at width 2048) and stays so when the policy is later cast to
+  // float32; with "float32" it is the float32 root, whatever the file's dtype. Images are not scaled.
   text_cfg_.embedding_scale = float(std::sqrt(double(text_cfg_.hidden)));
+  if (pz_.embedding_scale_in_config_dtype && json_get_or<std::string>(config, "dtype", "float32", where) == "bfloat16")
+    text_cfg_.embedding_scale = bf16_to_f32(f32_to_bf16(text_cfg_.embedding_scale));
 
   weights_ = std::make_unique<Weights>(std::move(store));
   Weights& w = *weights_;

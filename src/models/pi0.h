@@ -40,6 +40,9 @@ struct PiZeroOptions {
   // Attention head counts (query, key/value); nullopt: the Gemma variant's. SigLIP's; nullopt: 72-wide heads.
   std::optional<std::array<int64_t, 2>> vlm_heads, expert_heads;
   std::optional<int64_t> vision_heads;
+  // lerobot: sqrt(width) rounded to bf16 when config.json's `dtype` is "bfloat16" (the model is built in it). false:
+  // always the float32 root (FluxVLA multiplies by math.sqrt).
+  bool embedding_scale_in_config_dtype = true;
   // pi0.5's time. false: lerobot's (times from float64, sinusoid in float64). true: FluxVLA's: the time accumulated
   // in float32 (Schedule::float32_time) and its sinusoid computed in float32 (fluxvla_time_embedding).
   bool float32_time = false;

@@ -379,6 +379,7 @@ FluxvlaModel read_fluxvla_model(const fs::path& dir, const Json& config) {
   o.family = &pi05_fluxvla_family();
   o.image_norm = PiZeroOptions::ImageNorm::mean_std_255;
   o.prompt = PiZeroOptions::Prompt::task_newline;
+  o.embedding_scale_in_config_dtype = false;  // lang_emb * math.sqrt(dim), FV:pi0_flowmatching.py:237
   o.float32_time = true;                      // FV:pi0_flowmatching.py:642-649 and engines/utils/model_utils.py:40-68
   o.vlm_heads = std::array<int64_t, 2>{json_get<int64_t>(vlm, "num_attention_heads", where_of(dir, "model.llm_backbone")),
                                        json_get<int64_t>(vlm, "num_key_value_heads", where_of(dir, "model.llm_backbone"))};
