@@ -97,7 +97,7 @@ def test_shipped_registry_has_the_fluxvla_finetune():
     shipped = {k: v for k, v in os.environ.items() if k != "TETHER_REGISTRY"}
     info = json.loads(tether(["models", "info", "pi05-libero10-fluxvla", "--json"], shipped).stdout)
     assert (info["hf_repo"], info["subfolder"]) == ("limxdynamics/FluxVLAEngine", "pi05_paligemma_libero_10_full_finetune_bs64")
-    assert info["family"] == "pi05" and info["supported"] is False
+    assert info["family"] == "pi05_fluxvla" and info["supported"] is True
     assert info["figures"][0]["benchmark"] == "LIBERO-10 / LIBERO-Long" and info["figures"][0]["value"] == 95.6
 
 

@@ -74,8 +74,9 @@ const char* activation_name(Activation a);
 enum class RmsScale { weight, one_plus_weight };
 
 // How RoPE angles are rounded in float32: lerobot's apply_rope (SmolVLA) divides the position by the timescale
-// wavelength^(2i/D); transformers' rotary embedding (Gemma: pi0, pi0.5) multiplies it by inv_freq = 1 / base^(2i/D).
-enum class RopeAngles { timescale_division, inverse_frequency };
+// wavelength^(2i/D); transformers' rotary embedding (Gemma: pi0, pi0.5) multiplies it by inv_freq = 1 / base^(2i/D),
+// a float32 buffer, which a model built in bfloat16 holds rounded to bf16 even after a later cast to float32.
+enum class RopeAngles { timescale_division, inverse_frequency, inverse_frequency_bf16 };
 
 // Multiply-add counts of the matrix products run so far (2 per multiply-add), for benchmarks' GFLOP/s.
 struct FlopCounter {

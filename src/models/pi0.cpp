@@ -382,8 +382,11 @@ PiZero::PiZero(const fs::path& dir, const Json& config, TensorStore store, const
   // buffer is rounded to bf16 (45.25 for 45.2548 at width 2048) and stays so when the policy is later cast to
   // float32; with "float32" it is the float32 root, whatever the file's dtype. Images are not scaled.
   text_cfg_.embedding_scale = float(std::sqrt(double(text_cfg_.hidden)));
-  if (pz_.embedding_scale_in_config_dtype && json_get_or<std::string>(config, "dtype", "float32", where) == "bfloat16")
+  if (pz_.embedding_scale_in_config_dtype && json_get_or<std::string>(config, "dtype", "float32", where) == "bfloat16") {
     text_cfg_.embedding_scale = bf16_to_f32(f32_to_bf16(text_cfg_.embedding_scale));
+    // The rotary embeddings' inv_freq buffers are rounded to bf16 the same way.
+    text_cfg_.rope_angles = expert_cfg_.rope_angles = backend::RopeAngles::inverse_frequency_bf16;
+  }
 
   weights_ = std::make_unique<Weights>(std::move(store));
   Weights& w = *weights_;

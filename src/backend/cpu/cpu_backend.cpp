@@ -101,8 +101,10 @@ class CpuBackend final : public Backend {
   }
   void rope(Ptr<float> x, int64_t batch, int64_t len, int64_t heads, int64_t head_dim, Ptr<const int64_t> positions,
             float max_wavelength, backend::RopeAngles angles) override {
-    cpu::rope(x.address(), batch, len, heads, head_dim, positions.address(), max_wavelength,
-              angles == backend::RopeAngles::inverse_frequency);
+    const cpu::RopeAngles a = angles == backend::RopeAngles::timescale_division ? cpu::RopeAngles::timescale_division
+                              : angles == backend::RopeAngles::inverse_frequency ? cpu::RopeAngles::inverse_frequency
+                                                                                 : cpu::RopeAngles::inverse_frequency_bf16;
+    cpu::rope(x.address(), batch, len, heads, head_dim, positions.address(), max_wavelength, a);
   }
   void activate(Ptr<float> x, int64_t n, Activation act) override {
     if (act == Activation::silu) cpu::silu(x.address(), n);

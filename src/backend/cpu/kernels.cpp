@@ -12,6 +12,7 @@
 
 #include "backend/cpu/panel_gemm.h"
 #include "backend/cpu/vec_math.h"
+#include "core/dtype.h"
 #include "core/error.h"
 
 namespace tether::cpu {
@@ -110,7 +111,8 @@ void rms_norm(const float* x, int64_t rows, int64_t n, const float* weight, floa
 }
 
 void rope(float* x, int64_t batch, int64_t len, int64_t heads, int64_t head_dim, const int64_t* positions,
-          float max_wavelength, bool inverse_frequency) {
+          float max_wavelength, RopeAngles angles) {
+  const bool inverse_frequency = angles != RopeAngles::timescale_division;
   require(head_dim > 0 && head_dim % 2 == 0, "rope", [&] { return "head_dim must be even, got " + std::to_string(head_dim); });
   const int64_t half = head_dim / 2;
   // timescale[i] = max_wavelength ** (float(2 / D) * i), a float32 power; computing it in double and
@@ -124,6 +126,7 @@ void rope(float* x, int64_t batch, int64_t len, int64_t heads, int64_t head_dim,
     const float exponent = inverse_frequency ? float(2 * i) / float(head_dim) : step * float(i);
     const float power = float(std::pow(double(max_wavelength), double(exponent)));
     timescale[std::size_t(i)] = inverse_frequency ? 1.0f / power : power;
+    if (angles == RopeAngles::inverse_frequency_bf16) timescale[std::size_t(i)] = bf16_to_f32(f32_to_bf16(1.0f / power));
   }
   const float* ts = timescale.data();
   const int64_t tokens = batch * len;

@@ -14,10 +14,11 @@ void rms_norm(const float* x, int64_t rows, int64_t n, const float* weight, floa
 
 // Rotary embedding in place on x[B, L, H, D] (contiguous), "split halves" layout as in lerobot's apply_rope:
 // first half i pairs with second half i, frequency max_wavelength^(-2i/D), angle = position / timescale; with
-// inverse_frequency, transformers' rounding: inv_freq = 1 / base^(float(2i) / D) in float32, angle = position *
-// inv_freq. positions is [B, L].
+// inverse_frequency, transformers' rounding: inv_freq = 1 / base^(float(2i) / D) in float32 (rounded to bf16 with
+// inverse_frequency_bf16), angle = position * inv_freq. positions is [B, L].
+enum class RopeAngles { timescale_division, inverse_frequency, inverse_frequency_bf16 };
 void rope(float* x, int64_t batch, int64_t len, int64_t heads, int64_t head_dim, const int64_t* positions,
-          float max_wavelength, bool inverse_frequency = false);
+          float max_wavelength, RopeAngles angles = RopeAngles::timescale_division);
 
 // Masked grouped-query attention.
 // q: [B, Lq, H, D] with row stride q_stride between tokens (elements); k, v: [B, Lk, KvH, D] with token stride
