@@ -16,6 +16,7 @@ packages=(
   nlohmann-json3-dev libcli11-dev
   libonig-dev libicu-dev libspng-dev libturbojpeg0-dev libboost1.81-dev
   libcurl4-openssl-dev libssl-dev
+  libmsgpuck-dev libzmq3-dev cppzmq-dev
   libgtest-dev libgmock-dev libbenchmark-dev
 )
 missing=()

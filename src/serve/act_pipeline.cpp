@@ -58,6 +58,7 @@ struct ActPipeline::Act {
   int64_t rows = 0;
   std::optional<runtime::BatchResult> ran;  // set when this request's own forward pass answered
   bool may_forward = false;                 // the fallback may be called for this request
+  std::string fallback_body;                // with may_forward: the request as /act JSON, taken before inference
   bool probe = false;                       // this request is the circuit's half-open probe
 };
 
@@ -90,7 +91,7 @@ ActPipeline::ActPipeline(const ServerOptions& options, ModelHost& host, Metrics&
 
 ActPipeline::~ActPipeline() = default;
 
-net::awaitable<ActResponse> ActPipeline::run(std::string_view body, const RequestContext& ctx) {
+net::awaitable<ActResponse> ActPipeline::run(const ActInput& input, const RequestContext& ctx) {
   ActResponse res;
   try {
     check_api_key(ctx.api_key, opts_.api_key);
@@ -98,10 +99,10 @@ net::awaitable<ActResponse> ActPipeline::run(std::string_view body, const Reques
       throw HttpError(503, "not_ready",
                       std::string("the model is not ready (") + health_state_name(host_.health()) + ")");
     // HTTP enforces this while reading; a transport that hands over a whole message relies on this check.
-    if (body.size() > opts_.max_body_bytes)
+    if (input.wire_bytes > opts_.max_body_bytes)
       throw HttpError(413, "body_too_large",
-                      "the body exceeds " + std::to_string(opts_.max_body_bytes) + " bytes (--max-body-bytes)");
-    res = co_await traced(body, ctx);
+                      "the request exceeds " + std::to_string(opts_.max_body_bytes) + " bytes (--max-body-bytes)");
+    res = co_await traced(input, ctx);
   } catch (const HttpError& e) {
     res = error_response(e.status(), e.code(), e.what(), e.retry_after_s());
   } catch (const std::exception& e) {
@@ -109,16 +110,22 @@ net::awaitable<ActResponse> ActPipeline::run(std::string_view body, const Reques
   } catch (...) {
     res = error_response(500, "internal_error", "internal error");
   }
-  metrics_.count_request("/act", res.status);
+  metrics_.count_request("/act", res.status, ctx.transport);
   co_return res;
 }
 
+net::awaitable<ActResponse> ActPipeline::run(std::string_view body, const RequestContext& ctx) {
+  const ActInput input{body.size(), [body](const models::ModelSpec& spec) { return parse_act_request(body, spec); },
+                       [body](const ActRequest&) { return std::string(body); }};
+  co_return co_await run(input, ctx);
+}
+
 // Every request that passed auth and readiness leaves one trace line, whatever its outcome.
-net::awaitable<ActResponse> ActPipeline::traced(std::string_view body, const RequestContext& ctx) {
+net::awaitable<ActResponse> ActPipeline::traced(const ActInput& input, const RequestContext& ctx) {
   ActTrace trace;
   auto& wedges = host_.wedges();
   try {
-    ActResponse res = co_await answer(body, ctx, trace);
+    ActResponse res = co_await answer(input, ctx, trace);
     record_trace(wedges, metrics_, host_.engine(), trace, ctx.request_id, 200, "", "");
     co_return res;
   } catch (const HttpError& e) {
@@ -133,27 +140,28 @@ net::awaitable<ActResponse> ActPipeline::traced(std::string_view body, const Req
   }
 }
 
-net::awaitable<ActResponse> ActPipeline::answer(std::string_view body, const RequestContext& ctx, ActTrace& trace) {
-  Act a = parse(body, ctx, trace);
-  co_await admit(a, body, ctx);  // 1. circuit breaker
+net::awaitable<ActResponse> ActPipeline::answer(const ActInput& input, const RequestContext& ctx, ActTrace& trace) {
+  Act a = parse(input, ctx, trace);
+  co_await admit(a, ctx);  // 1. circuit breaker
   try_skip(a);                   // 2. similarity skip
   if (!a.actions) {              // 3. inference under the deadline
     Inference inference = co_await infer(a, ctx);
-    if (inference.failure) co_await recover(a, inference, body, ctx, trace);  // 4. fallback, 5. last good chunk
+    if (inference.failure) co_await recover(a, inference, ctx, trace);  // 4. fallback, 5. last good chunk
   }
   co_return respond(a, ctx, trace);  // 7. guard, then the answer
 }
 
-ActPipeline::Act ActPipeline::parse(std::string_view body, const RequestContext& ctx, ActTrace& trace) {
+ActPipeline::Act ActPipeline::parse(const ActInput& input, const RequestContext& ctx, ActTrace& trace) {
   const auto& w = opts_.wedges;
   const Engine& engine = host_.engine();
   auto& wedges = host_.wedges();
   const auto t_parse = Clock::now();
   Act a;
-  a.parsed = parse_act_request(body, engine.spec);
+  a.parsed = input.decode(engine.spec);
   policy::Observation& obs = a.parsed.observation;
   obs.seed = a.parsed.seed ? *a.parsed.seed : seed_from_request_id(ctx.request_id);
   trace.task = obs.instruction;
+  trace.transport = ctx.transport;
   trace.has_episode = a.parsed.episode_id.has_value();
   trace.episode_id = a.parsed.episode_id.value_or("");
   if (wedges.recorder()) trace.inputs = trace_inputs(obs, w.record_images_full);
@@ -168,16 +176,18 @@ ActPipeline::Act ActPipeline::parse(std::string_view body, const RequestContext&
     a.normalized_state = engine.normalize_state ? engine.normalize_state(a.state) : a.state;
   a.rows = engine.spec.chunk_size;
   a.may_forward = fallback_ && !ctx.from_fallback;
+  // Inference takes the observation over: what the fallback is sent is fixed now.
+  if (a.may_forward) a.fallback_body = input.act_json(a.parsed);
   return a;
 }
 
-net::awaitable<void> ActPipeline::admit(Act& a, std::string_view body, const RequestContext& ctx) {
+net::awaitable<void> ActPipeline::admit(Act& a, const RequestContext& ctx) {
   auto& breaker = host_.wedges().breaker();
   const auto admission = breaker.admit();
   a.probe = admission == runtime::CircuitBreaker::Admission::probe;
   if (admission != runtime::CircuitBreaker::Admission::reject) co_return;
   count_wedge_event(metrics_, WedgeEvent::circuit_rejected);
-  if (a.may_forward) co_await call_fallback(a, body, ctx.request_id);
+  if (a.may_forward) co_await call_fallback(a, ctx.request_id);
   if (!a.actions) {
     const int retry = breaker.retry_after_s();
     throw HttpError(503, "circuit_open",
@@ -252,7 +262,7 @@ net::awaitable<ActPipeline::Inference> ActPipeline::infer(Act& a, const RequestC
   co_return inf;
 }
 
-net::awaitable<void> ActPipeline::recover(Act& a, Inference& inf, std::string_view body, const RequestContext& ctx,
+net::awaitable<void> ActPipeline::recover(Act& a, Inference& inf, const RequestContext& ctx,
                                           ActTrace& trace) {
   auto& wedges = host_.wedges();
   const bool missed = *inf.failure == BatchError::Kind::deadline_exceeded && inf.has_deadline;
@@ -260,7 +270,7 @@ net::awaitable<void> ActPipeline::recover(Act& a, Inference& inf, std::string_vi
   if (missed) count_wedge_event(metrics_, WedgeEvent::deadline_exceeded);
   if (!missed) a.report.inference_error = inf.failure_message;
   // 4. Cloud fallback, 5. last good chunk.
-  if (a.may_forward) co_await call_fallback(a, body, ctx.request_id);
+  if (a.may_forward) co_await call_fallback(a, ctx.request_id);
   if (a.actions) wedges.on_fallback_chunk(*a.ep, *a.actions, a.rows, ctx.received);
   if (!a.actions && missed) a.actions = wedges.last_good(*a.ep, a.report);
   // A non-finite chunk with nothing better to send: the guard replaces each bad value with the last safe command.
@@ -377,7 +387,7 @@ std::shared_ptr<ActPipeline::InferenceWait> ActPipeline::start_inference(const n
 }
 
 // Forwards the request body to the fallback server; on success the actions it answered with become the request's.
-net::awaitable<void> ActPipeline::call_fallback(Act& a, std::string_view body, const std::string& request_id) {
+net::awaitable<void> ActPipeline::call_fallback(Act& a, const std::string& request_id) {
   // The blocking libcurl call runs on the fallback pool; co_spawn brings the result back to this coroutine's strand.
   // The awaitable is a named local: GCC 12 can destroy temporaries of a co_await operand twice.
   struct Call {
@@ -386,7 +396,7 @@ net::awaitable<void> ActPipeline::call_fallback(Act& a, std::string_view body, c
     int64_t action_dim;
   };
   auto call = std::make_shared<const Call>(
-      Call{fallback_.get(), std::string(body), request_id, host_.wedges().action_dim()});
+      Call{fallback_.get(), a.fallback_body, request_id, host_.wedges().action_dim()});
   auto perform = net::co_spawn(
       *fallback_pool_,
       [call]() -> net::awaitable<runtime::FallbackReply> {

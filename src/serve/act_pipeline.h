@@ -1,18 +1,21 @@
 // The /act pipeline, independent of any transport: auth, readiness, the body limit, parsing, every safety wedge
 // in order (runtime/wedges.h), inference under the deadline, the fallback, the guard, the trace line and the
-// metrics. HTTP (and later ZMQ or WebSocket) only turn bytes into a call of run() and its ActResponse into bytes.
+// metrics. Every transport (HTTP's /act and KServe v2, openpi's WebSocket, GR00T's and Tether's ZMQ) only turns its
+// bytes into an ActInput and the ActResponse back into its own reply (serve/transport.h).
 #pragma once
 
 #include <boost/asio/any_io_executor.hpp>
 #include <boost/asio/awaitable.hpp>
 #include <boost/asio/thread_pool.hpp>
 #include <chrono>
+#include <functional>
 #include <memory>
 #include <string>
 #include <string_view>
 
 #include "core/json_util.h"
 #include "runtime/fallback_client.h"
+#include "serve/act_request.h"
 #include "serve/act_trace.h"
 #include "serve/metrics.h"
 #include "serve/model_host.h"
@@ -28,6 +31,18 @@ struct RequestContext {
   // Forwarded by another server's fallback client (runtime::kFallbackMarkerHeader): answered locally, never
   // forwarded again.
   bool from_fallback = false;
+  // The way in, as metrics and traces name it: http, kserve, openpi, gr00t or zmq.
+  std::string transport = "http";
+};
+
+// A request as a transport hands it over. Decoding waits until auth and readiness have passed (the model's cameras
+// and sizes are known only then); it throws HttpError(400, code) naming the field at fault, as parse_act_request does.
+struct ActInput {
+  std::size_t wire_bytes = 0;  // checked against --max-body-bytes before anything is decoded
+  std::function<ActRequest(const models::ModelSpec&)> decode;
+  // The request as a POST /act body, for the cloud fallback (which speaks /act); HTTP passes its body as is, other
+  // transports re-encode what they decoded (act_request_json).
+  std::function<std::string(const ActRequest&)> act_json;
 };
 
 // The answer in transport-neutral form. HTTP sends `status` as the status line and `body` as JSON, with
@@ -46,9 +61,11 @@ class ActPipeline {
   ActPipeline(const ActPipeline&) = delete;
   ActPipeline& operator=(const ActPipeline&) = delete;
 
-  // Runs one /act request to its answer; never throws. Counts it in tether_requests_total{endpoint="/act"}.
-  // `body` and `ctx` must outlive the awaitable (await it at once). Awaits the batcher and the fallback without
+  // Runs one request to its answer; never throws. Counts it in tether_requests_total{transport, endpoint="/act"}.
+  // `input` and `ctx` must outlive the awaitable (await it at once). Awaits the batcher and the fallback without
   // blocking the calling executor's thread.
+  boost::asio::awaitable<ActResponse> run(const ActInput& input, const RequestContext& ctx);
+  // An /act JSON body (HTTP's POST /act).
   boost::asio::awaitable<ActResponse> run(std::string_view body, const RequestContext& ctx);
 
  private:
@@ -56,20 +73,20 @@ class ActPipeline {
   struct InferenceWait;
   struct Inference;
 
-  boost::asio::awaitable<ActResponse> traced(std::string_view body, const RequestContext& ctx);
-  boost::asio::awaitable<ActResponse> answer(std::string_view body, const RequestContext& ctx, ActTrace& trace);
-  Act parse(std::string_view body, const RequestContext& ctx, ActTrace& trace);
-  boost::asio::awaitable<void> admit(Act& a, std::string_view body, const RequestContext& ctx);
+  boost::asio::awaitable<ActResponse> traced(const ActInput& input, const RequestContext& ctx);
+  boost::asio::awaitable<ActResponse> answer(const ActInput& input, const RequestContext& ctx, ActTrace& trace);
+  Act parse(const ActInput& input, const RequestContext& ctx, ActTrace& trace);
+  boost::asio::awaitable<void> admit(Act& a, const RequestContext& ctx);
   void try_skip(Act& a);
   boost::asio::awaitable<Inference> infer(Act& a, const RequestContext& ctx);
-  boost::asio::awaitable<void> recover(Act& a, Inference& inference, std::string_view body, const RequestContext& ctx,
+  boost::asio::awaitable<void> recover(Act& a, Inference& inference, const RequestContext& ctx,
                                        ActTrace& trace);
   ActResponse respond(Act& a, const RequestContext& ctx, ActTrace& trace);
 
   std::shared_ptr<InferenceWait> start_inference(const boost::asio::any_io_executor& ex, Act& a,
                                                  runtime::Clock::time_point observed,
                                                  runtime::Clock::time_point batch_deadline);
-  boost::asio::awaitable<void> call_fallback(Act& a, std::string_view body, const std::string& request_id);
+  boost::asio::awaitable<void> call_fallback(Act& a, const std::string& request_id);
 
   const ServerOptions& opts_;
   ModelHost& host_;

@@ -16,6 +16,20 @@ using J = nlohmann::json;  // request key order carries no meaning
 
 std::string type_name(const J& v) { return v.type_name(); }
 
+void check_pixels(int64_t height, int64_t width, const std::string& where) {
+  if (height < 1 || width < 1) fail("invalid_field", where + ": an image needs at least one pixel");
+  if (height > vision::kMaxImagePixels / width)
+    fail("invalid_field", where + ": " + std::to_string(height) + "x" + std::to_string(width) + " exceeds the " +
+                              std::to_string(vision::kMaxImagePixels) + "-pixel limit");
+}
+
+void check_state(const std::vector<float>& state, const models::ModelSpec& spec) {
+  if (int64_t(state.size()) != spec.state_dim)
+    fail("invalid_state", "state has " + std::to_string(state.size()) + " values, the model expects " + std::to_string(spec.state_dim));
+  for (std::size_t i = 0; i < state.size(); ++i)
+    if (!std::isfinite(state[i])) fail("invalid_state", "state[" + std::to_string(i) + "] is not a finite float32");
+}
+
 vision::Image decode_raw(const J& obj, const std::string& field) {
   for (auto it = obj.begin(); it != obj.end(); ++it)
     if (it.key() != "data" && it.key() != "shape")
@@ -35,9 +49,7 @@ vision::Image decode_raw(const J& obj, const std::string& field) {
     dims[i] = d.get<int64_t>();
   }
   if (dims[2] != 3) fail("invalid_field", field + ".shape: the last dimension must be 3 (RGB), got " + std::to_string(dims[2]));
-  if (dims[0] * dims[1] > vision::kMaxImagePixels)
-    fail("invalid_field", field + ".shape: " + std::to_string(dims[0]) + "x" + std::to_string(dims[1]) +
-                              " exceeds the " + std::to_string(vision::kMaxImagePixels) + "-pixel limit");
+  check_pixels(dims[0], dims[1], field + ".shape");
   std::string why;
   auto bytes = base64_decode(data->get_ref<const std::string&>(), &why);
   if (!bytes) fail("invalid_field", field + ".data: " + why);
@@ -194,11 +206,8 @@ ActRequest parse_act_request(std::string_view body, const models::ModelSpec& spe
   if (int64_t(state->size()) != spec.state_dim)
     fail("invalid_state", "state has " + std::to_string(state->size()) + " values, the model expects " + std::to_string(spec.state_dim));
   obs.state.reserve(state->size());
-  for (std::size_t i = 0; i < state->size(); ++i) {
-    const float v = float((*state)[i].get<double>());
-    if (!std::isfinite(v)) fail("invalid_state", "state[" + std::to_string(i) + "] is not a finite float32");
-    obs.state.push_back(v);
-  }
+  for (std::size_t i = 0; i < state->size(); ++i) obs.state.push_back(float((*state)[i].get<double>()));
+  check_state(obs.state, spec);
 
   const auto images = j.find("images");
   const auto image = j.find("image");
@@ -238,6 +247,39 @@ ActRequest parse_act_request(std::string_view body, const models::ModelSpec& spe
     req.seed = seed->get<uint64_t>();
   }
   return req;
+}
+
+void check_observation(const policy::Observation& obs, const models::ModelSpec& spec) {
+  check_state(obs.state, spec);
+  if (obs.images.empty()) fail("missing_field", "an image is required: the request names no camera the model has");
+}
+
+vision::Image raw_rgb_image(const uint8_t* data, int64_t height, int64_t width, const std::string& field) {
+  check_pixels(height, width, field);
+  vision::Image img;
+  img.height = int(height);
+  img.width = int(width);
+  img.rgb.assign(data, data + height * width * 3);
+  return img;
+}
+
+std::string act_request_json(const ActRequest& req) {
+  const policy::Observation& obs = req.observation;
+  J images = J::object();
+  for (const auto& [camera, img] : obs.images)
+    images[camera] = {{"data", base64_encode(img.rgb.data(), img.rgb.size())}, {"shape", {img.height, img.width, 3}}};
+  J body = {{"instruction", obs.instruction}, {"state", obs.state}, {"images", std::move(images)}};
+  if (req.seed) body["seed"] = *req.seed;
+  if (req.episode_id) body["episode_id"] = *req.episode_id;
+  if (req.rtc) {
+    const int64_t dim = req.rtc->rows > 0 ? int64_t(req.rtc->prev_actions.size()) / req.rtc->rows : 0;
+    J rows = J::array();
+    for (int64_t r = 0; r < req.rtc->rows; ++r)
+      rows.push_back(std::vector<float>(req.rtc->prev_actions.begin() + r * dim,
+                                        req.rtc->prev_actions.begin() + (r + 1) * dim));
+    body["rtc"] = {{"prev_actions", std::move(rows)}, {"inference_delay", req.rtc->inference_delay}};
+  }
+  return body.dump();
 }
 
 }  // namespace tether::serve

@@ -9,6 +9,7 @@
 #include "models/model.h"
 #include "policy/policy.h"
 #include "serve/http_error.h"
+#include "vision/image.h"
 
 namespace tether::serve {
 
@@ -34,6 +35,19 @@ inline constexpr int kMaxJsonDepth = 16;
 // Throws HttpError(400, code) with code one of bad_json, invalid_field, invalid_state, invalid_image,
 // unknown_camera, unknown_field, missing_field; the message names the field at fault.
 ActRequest parse_act_request(std::string_view body, const models::ModelSpec& spec);
+
+// The checks of the API contract that do not depend on the wire format, for transports that decode their own
+// (msgpack, npy, KServe tensors): `state` has spec.state_dim finite values, and at least one camera image is given.
+// Throws HttpError(400, invalid_state / missing_field).
+void check_observation(const policy::Observation& obs, const models::ModelSpec& spec);
+
+// A raw uint8 RGB image [height, width, 3] (row-major, `data` holds height*width*3 bytes) as `field` of a request:
+// dimensions checked against vision::kMaxImagePixels (HttpError(400, invalid_field) naming the field).
+vision::Image raw_rgb_image(const uint8_t* data, int64_t height, int64_t width, const std::string& field);
+
+// `req` as a POST /act body (images in the raw {"data", "shape"} form), so a request that came in on another
+// transport can be forwarded to a cloud fallback, which speaks /act.
+std::string act_request_json(const ActRequest& req);
 
 // The camera key `name` stands for (the key, or the key without spec.camera_prefix: "front" ->
 // "observation.images.front"); nullopt for a camera the model does not have.

@@ -26,6 +26,7 @@ void record_trace(runtime::Wedges& wedges, Metrics& metrics, const Engine& engin
   Json line = {{"request_id", request_id},
                {"episode_id", t.has_episode ? Json(t.episode_id) : Json(nullptr)},
                {"task", t.task},
+               {"transport", t.transport.empty() ? Json(nullptr) : Json(t.transport)},
                {"model", engine.model_name},
                {"model_hash", engine.model_hash},
                {"status", status == 200 ? "success" : "failed"},

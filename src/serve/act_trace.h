@@ -14,7 +14,7 @@ namespace tether::serve {
 
 // Filled as the pipeline advances; fields never reached stay null.
 struct ActTrace {
-  std::string episode_id, task;
+  std::string episode_id, task, transport;
   Json inputs, actions, latency = Json::object(), wedges = Json::object();
   bool has_episode = false;
 };

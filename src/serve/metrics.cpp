@@ -77,9 +77,9 @@ void Metrics::declare_stages(const std::vector<std::string>& stages) {
   for (const auto& s : stages) stages_.emplace(s, Histogram(kLatencyBounds));
 }
 
-void Metrics::count_request(const std::string& endpoint, int status) {
+void Metrics::count_request(const std::string& endpoint, int status, const std::string& transport) {
   std::lock_guard lock(mu_);
-  ++requests_[{endpoint, status}];
+  ++requests_[{transport, endpoint, status}];
 }
 
 void Metrics::observe_stage(const std::string& stage, double seconds) {
@@ -128,11 +128,13 @@ void Metrics::set_gauge(const std::string& name, const std::string& help, double
 std::string Metrics::render() const {
   std::lock_guard lock(mu_);
   std::string out;
-  out += "# HELP tether_requests_total HTTP requests answered, by endpoint and status code.\n";
+  out += "# HELP tether_requests_total Requests answered, by transport, endpoint and status code.\n";
   out += "# TYPE tether_requests_total counter\n";
-  for (const auto& [key, n] : requests_)
-    out += "tether_requests_total{endpoint=\"" + escape_label(key.first) + "\",status=\"" + std::to_string(key.second) +
-           "\"} " + std::to_string(n) + "\n";
+  for (const auto& [key, n] : requests_) {
+    const auto& [transport, endpoint, status] = key;
+    out += "tether_requests_total{transport=\"" + escape_label(transport) + "\",endpoint=\"" + escape_label(endpoint) +
+           "\",status=\"" + std::to_string(status) + "\"} " + std::to_string(n) + "\n";
+  }
   out += "# HELP tether_request_duration_seconds Latency of /act requests by stage (total = received to answered).\n";
   out += "# TYPE tether_request_duration_seconds histogram\n";
   for (const auto& [stage, h] : stages_)

@@ -6,6 +6,7 @@
 #include <map>
 #include <mutex>
 #include <string>
+#include <tuple>
 #include <vector>
 
 namespace tether::serve {
@@ -32,7 +33,9 @@ class Metrics {
  public:
   Metrics(std::string version, std::string gemm);
 
-  void count_request(const std::string& endpoint, int status);
+  // `transport`: the way in (http, openpi, gr00t, zmq, kserve), a label of its own so that one dashboard shows every
+  // robot's client.
+  void count_request(const std::string& endpoint, int status, const std::string& transport = "http");
   // `stage`: total, queue, postprocess, or one of the model's stages (ModelSpec::stages).
   void observe_stage(const std::string& stage, double seconds);
   // The model's stages, so that their series exist (at zero) before the first request.
@@ -52,7 +55,7 @@ class Metrics {
  private:
   mutable std::mutex mu_;
   std::string version_, gemm_;
-  std::map<std::pair<std::string, int>, uint64_t> requests_;
+  std::map<std::tuple<std::string, std::string, int>, uint64_t> requests_;  // transport, endpoint, status
   std::map<std::string, Histogram> stages_;
   Histogram batch_sizes_;
   struct Family {

@@ -13,6 +13,7 @@
 #include "serve/http_session.h"
 #include "serve/metrics.h"
 #include "serve/router.h"
+#include "serve/transport.h"
 
 namespace tether::serve {
 
@@ -32,9 +33,11 @@ struct Server::Impl {
   ActPipeline pipeline;
   Router router;
   HttpSessions sessions;
+  std::vector<std::unique_ptr<Transport>> transports;  // besides HTTP, as the options ask
   std::thread load_thread;
   std::atomic<bool> draining{false}, stop_requested{false};
   uint16_t bound_port = 0;
+  std::vector<std::pair<std::string, uint16_t>> transport_ports;
 
   Impl(ServerOptions o, EngineLoader loader)
       : opts(std::move(o)),
@@ -42,7 +45,18 @@ struct Server::Impl {
         host(std::move(loader), opts.batch, opts.wedges, metrics),
         pipeline(opts, host, metrics),
         router(opts, host, metrics, pipeline),
-        sessions(opts, router, metrics) {}
+        sessions(opts, router, metrics),
+        transports(make_transports({opts, host, metrics, pipeline, ioc})) {}
+
+  int in_flight() const {
+    int n = sessions.in_flight();
+    for (const auto& t : transports) n += t->in_flight();
+    return n;
+  }
+
+  void stop_transports() {
+    for (auto& t : transports) t->stop();
+  }
 
   void load_model() {
     if (!host.load()) net::post(accept_strand, [this] { begin_shutdown(); });
@@ -74,6 +88,7 @@ struct Server::Impl {
   void begin_shutdown() {
     if (draining.exchange(true)) return;
     sessions.begin_draining();
+    for (auto& t : transports) t->begin_draining();
     boost::system::error_code ec;
     // Connections the kernel has already completed were made before the signal: take them, then stop listening.
     if (acceptor.is_open()) {
@@ -99,14 +114,14 @@ struct Server::Impl {
     constexpr auto kQuiet = std::chrono::milliseconds(100);
     auto idle_since = Clock::now();
     while (Clock::now() < until) {
-      if (sessions.in_flight() > 0) idle_since = Clock::now();
+      if (in_flight() > 0) idle_since = Clock::now();
       else if (Clock::now() - idle_since >= kQuiet) break;
       timer.expires_after(std::chrono::milliseconds(10));
       boost::system::error_code ec;
       co_await timer.async_wait(net::redirect_error(net::use_awaitable, ec));
     }
-    if (sessions.in_flight() > 0)
-      std::fprintf(stderr, "tether serve: shutdown timeout: %d request(s) still in flight\n", sessions.in_flight());
+    if (in_flight() > 0)
+      std::fprintf(stderr, "tether serve: shutdown timeout: %d request(s) still in flight\n", in_flight());
     ioc.stop();
   }
 };
@@ -115,6 +130,7 @@ Server::Server(ServerOptions options, EngineLoader loader)
     : impl_(std::make_unique<Impl>(std::move(options), std::move(loader))) {}
 
 Server::~Server() {
+  impl_->stop_transports();
   if (impl_->load_thread.joinable()) impl_->load_thread.join();
   impl_->host.stop();
 }
@@ -138,6 +154,14 @@ uint16_t Server::start() {
   if (ec)
     throw Error(ErrorCode::io, "cannot listen on " + m.opts.host + ":" + std::to_string(m.opts.port) + ": " + ec.message());
   m.bound_port = m.acceptor.local_endpoint().port();
+  for (auto& t : m.transports) {
+    try {
+      m.transport_ports.emplace_back(t->name(), t->start());
+    } catch (...) {
+      m.stop_transports();
+      throw;
+    }
+  }
   m.load_thread = std::thread([&m] { m.load_model(); });
   return m.bound_port;
 }
@@ -159,6 +183,7 @@ void Server::run(bool handle_signals) {
   for (int i = 1; i < std::max(1, m.opts.threads); ++i) threads.emplace_back([&m] { m.ioc.run(); });
   m.ioc.run();
   for (auto& t : threads) t.join();
+  m.stop_transports();
   if (m.load_thread.joinable()) m.load_thread.join();
   m.host.stop();
   if (m.host.load_error()) std::rethrow_exception(m.host.load_error());
@@ -170,6 +195,8 @@ void Server::stop() {
 }
 
 uint16_t Server::port() const { return impl_->bound_port; }
+
+std::vector<std::pair<std::string, uint16_t>> Server::transport_ports() const { return impl_->transport_ports; }
 
 HealthState Server::health() const { return impl_->host.health(); }
 

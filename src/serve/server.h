@@ -11,6 +11,9 @@
 
 #include <cstdint>
 #include <memory>
+#include <string>
+#include <utility>
+#include <vector>
 
 #include "serve/auth.h"
 #include "serve/engine.h"
@@ -38,6 +41,8 @@ class Server {
   void stop();
 
   uint16_t port() const;
+  // The transports besides HTTP that start() bound, by name (Transport::name), in start order.
+  std::vector<std::pair<std::string, uint16_t>> transport_ports() const;
   HealthState health() const;
 
  private:

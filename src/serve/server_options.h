@@ -3,6 +3,7 @@
 
 #include <cstddef>
 #include <cstdint>
+#include <optional>
 #include <string>
 
 #include "runtime/batcher.h"
@@ -23,6 +24,11 @@ struct ServerOptions {
   int shutdown_timeout_ms = 10000;  // in-flight requests get this long after SIGTERM/SIGINT
   int threads = 2;                  // I/O threads (inference runs on the batcher's worker)
   runtime::WedgeOptions wedges;     // safety wedges, episodes and trace recording (all off by default)
+
+  // Transports beside HTTP (serve/transport.h), on `host`; absent: off, 0: the OS picks a free port.
+  std::optional<uint16_t> openpi_port;  // openpi's WebSocket policy server protocol
+  std::optional<uint16_t> gr00t_port;   // Isaac-GR00T's ZMQ PolicyClient protocol
+  std::optional<uint16_t> zmq_port;     // Tether's own ZMQ protocol (ROUTER: many robots on one port)
 };
 
 }  // namespace tether::serve

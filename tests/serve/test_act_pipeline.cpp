@@ -96,7 +96,7 @@ TEST(ActPipeline, AnswersWithTheChunkAndCountsTheRequest) {
   EXPECT_EQ(r.body["actions"][2][1].get<float>(), 5 + 21);
   EXPECT_EQ(r.body["request_id"], "req-1");
   EXPECT_EQ(r.body["model_hash"], "sha256:feed");
-  EXPECT_NE(f.metrics.render().find("tether_requests_total{endpoint=\"/act\",status=\"200\"} 1"), std::string::npos);
+  EXPECT_NE(f.metrics.render().find("tether_requests_total{transport=\"http\",endpoint=\"/act\",status=\"200\"} 1"), std::string::npos);
 }
 
 TEST(ActPipeline, ErrorsAreResponsesNotExceptions) {
@@ -109,8 +109,8 @@ TEST(ActPipeline, ErrorsAreResponsesNotExceptions) {
   EXPECT_EQ(r.status, 500);
   EXPECT_EQ(code_of(r), "inference_failed");
   const std::string m = f.metrics.render();
-  EXPECT_NE(m.find("tether_requests_total{endpoint=\"/act\",status=\"400\"} 1"), std::string::npos) << m;
-  EXPECT_NE(m.find("tether_requests_total{endpoint=\"/act\",status=\"500\"} 1"), std::string::npos) << m;
+  EXPECT_NE(m.find("tether_requests_total{transport=\"http\",endpoint=\"/act\",status=\"400\"} 1"), std::string::npos) << m;
+  EXPECT_NE(m.find("tether_requests_total{transport=\"http\",endpoint=\"/act\",status=\"500\"} 1"), std::string::npos) << m;
 }
 
 TEST(ActPipeline, ChecksTheKeyTheTransportPresents) {

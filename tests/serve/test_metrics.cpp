@@ -38,8 +38,8 @@ TEST(Metrics, RendersTheContractSeries) {
   m.set_model_ready(true);
   const std::string t = m.render();
   EXPECT_TRUE(has_line(t, "# TYPE tether_requests_total counter")) << t;
-  EXPECT_TRUE(has_line(t, "tether_requests_total{endpoint=\"/act\",status=\"200\"} 2")) << t;
-  EXPECT_TRUE(has_line(t, "tether_requests_total{endpoint=\"/act\",status=\"503\"} 1")) << t;
+  EXPECT_TRUE(has_line(t, "tether_requests_total{transport=\"http\",endpoint=\"/act\",status=\"200\"} 2")) << t;
+  EXPECT_TRUE(has_line(t, "tether_requests_total{transport=\"http\",endpoint=\"/act\",status=\"503\"} 1")) << t;
   EXPECT_TRUE(has_line(t, "# TYPE tether_request_duration_seconds histogram")) << t;
   // Cumulative buckets: 0.004 lands in le=0.005, 0.02 in le=0.025.
   EXPECT_TRUE(has_line(t, "tether_request_duration_seconds_bucket{stage=\"total\",le=\"0.0025\"} 0")) << t;

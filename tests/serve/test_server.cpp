@@ -344,9 +344,9 @@ TEST(Server, MetricsCountRequestsAndStages) {
   const HttpReply m = http_get(srv.port(), "/metrics");
   ASSERT_EQ(m.status, 200);
   EXPECT_EQ(m.headers.at("content-type").rfind("text/plain; version=0.0.4", 0), 0u);
-  for (const char* line : {"tether_requests_total{endpoint=\"/act\",status=\"200\"} 1",
-                           "tether_requests_total{endpoint=\"/act\",status=\"400\"} 1",
-                           "tether_requests_total{endpoint=\"other\",status=\"404\"} 1",
+  for (const char* line : {"tether_requests_total{transport=\"http\",endpoint=\"/act\",status=\"200\"} 1",
+                           "tether_requests_total{transport=\"http\",endpoint=\"/act\",status=\"400\"} 1",
+                           "tether_requests_total{transport=\"http\",endpoint=\"other\",status=\"404\"} 1",
                            "tether_request_duration_seconds_count{stage=\"denoise\"} 1",
                            "tether_batch_size_count 1",  // the warm-up is not a served request
                            "tether_model_ready 1", "tether_queue_depth 0", "tether_build_info{version="})
