@@ -22,6 +22,8 @@ DEMO = REPO / "models" / "demo" / "smolvla-demo"
 SAMPLE_PNG = REPO / "models" / "demo" / "sample.png"
 FIXTURE_IMAGES = REPO / "tests" / "fixtures" / "vision"
 LISTENING = re.compile(r"^tether serve: listening on http://(\S+):(\d+)\s*$")
+# Printed before the HTTP line, one per transport besides HTTP (openpi, gr00t, zmq).
+TRANSPORT_LISTENING = re.compile(r"^tether serve: (\S+) listening on (\S+):(\d+)\s*$")
 
 
 _RUNNING: "set[ServeProcess]" = set()
@@ -62,6 +64,7 @@ class ServeProcess:
         _RUNNING.add(self)
         self.stdout_lines: "queue.Queue[Optional[str]]" = queue.Queue()
         self.stdout_seen: List[str] = []
+        self.transport_ports: Dict[str, int] = {}  # transport name -> bound port
         threading.Thread(target=self._drain_stdout, daemon=True).start()
         self.host, self.port = self._wait_listening(start_timeout)
         self.url = f"http://{self.host}:{self.port}"
@@ -94,6 +97,10 @@ class ServeProcess:
                 rc = self.proc.wait(timeout=10)
                 raise AssertionError(f"{self.cmd} exited with {rc} before listening; stderr: {self.stderr_tail()}")
             self.stdout_seen.append(line)
+            t = TRANSPORT_LISTENING.match(line)
+            if t:
+                self.transport_ports[t.group(1)] = int(t.group(3))
+                continue
             m = LISTENING.match(line)
             if m:
                 return m.group(1), int(m.group(2))

@@ -185,9 +185,10 @@ int run_server(const std::string& checkpoint_dir, const ServeFlags& flags) {
   const models::LoadOptions load = load_options(flags.precision);
   serve::Server server(options, [checkpoint_dir, load] { return serve::load_policy_engine(checkpoint_dir, load); });
   const uint16_t port = server.start();
-  std::printf("tether serve: listening on http://%s:%u\n", options.host.c_str(), unsigned(port));
+  // The other transports first: the HTTP line, which clients and scripts wait for, means everything is bound.
   for (const auto& [name, transport_port] : server.transport_ports())
     std::printf("tether serve: %s listening on %s:%u\n", name.c_str(), options.host.c_str(), unsigned(transport_port));
+  std::printf("tether serve: listening on http://%s:%u\n", options.host.c_str(), unsigned(port));
   std::fflush(stdout);
   std::fprintf(stderr, "tether serve: loading %s (%s)\n", checkpoint_dir.c_str(),
                options.api_key.empty() ? "no API key: /act and /config are open" : "API key required for /act and /config");

@@ -11,6 +11,7 @@
 
 #include <chrono>
 #include <cstdio>
+#include <map>
 #include <regex>
 #include <stdexcept>
 #include <string>
@@ -61,13 +62,20 @@ class ServeProcess {
     posix_spawn_file_actions_destroy(&fa);
     close(out[1]);
     out_ = fdopen(out[0], "r");
-    char line[512];
-    if (!fgets(line, sizeof line, out_)) throw std::runtime_error("tether serve printed no listening line");
-    std::smatch m;
-    const std::string s(line);
-    if (!std::regex_search(s, m, std::regex(R"(^tether serve: listening on http://127\.0\.0\.1:(\d+)\n$)")))
-      throw std::runtime_error("unexpected first line: " + s);
-    port_ = uint16_t(std::stoi(m[1]));
+    // One line per transport besides HTTP, then the HTTP line.
+    for (char line[512];;) {
+      if (!fgets(line, sizeof line, out_)) throw std::runtime_error("tether serve printed no listening line");
+      std::smatch m;
+      const std::string s(line);
+      if (std::regex_search(s, m, std::regex(R"(^tether serve: (\S+) listening on 127\.0\.0\.1:(\d+)\n$)"))) {
+        transport_ports_[m[1]] = uint16_t(std::stoi(m[2]));
+        continue;
+      }
+      if (!std::regex_search(s, m, std::regex(R"(^tether serve: listening on http://127\.0\.0\.1:(\d+)\n$)")))
+        throw std::runtime_error("unexpected line: " + s);
+      port_ = uint16_t(std::stoi(m[1]));
+      break;
+    }
   }
   ~ServeProcess() {
     if (pid_ > 0) {
@@ -77,6 +85,11 @@ class ServeProcess {
     if (out_) fclose(out_);
   }
   uint16_t port() const { return port_; }
+  // The port of a transport besides HTTP (openpi, gr00t, zmq); 0 if it was not started.
+  uint16_t transport_port(const std::string& name) const {
+    const auto it = transport_ports_.find(name);
+    return it == transport_ports_.end() ? 0 : it->second;
+  }
   // SIGTERM, then the exit status (or -1 if it did not exit normally within 30 s).
   int terminate() {
     kill(pid_, SIGTERM);
@@ -95,6 +108,7 @@ class ServeProcess {
   pid_t pid_ = -1;
   FILE* out_ = nullptr;
   uint16_t port_ = 0;
+  std::map<std::string, uint16_t> transport_ports_;
 };
 
 inline void wait_ready(uint16_t port) {
