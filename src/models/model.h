@@ -88,6 +88,16 @@ class Model {
     if (debug_) debug_(name, t);
   }
   bool dumping() const { return bool(debug_); }
+
+  // The frame every flow-matching predict() shares around its own prefix and velocity. begin_predict checks each
+  // item's state and noise sizes against spec() and returns the output with its sizes set. sample_actions draws
+  // each item's noise (or takes the explicit one), uploads it to `x`, runs Euler under each item's controls (timed as
+  // "denoise") and writes the actions cut from max_action_dim to action_dim.
+  ModelOutput begin_predict(const std::vector<ModelInput>& batch) const;
+  void sample_actions(backend::Backend& be, const std::vector<ModelInput>& batch, backend::Ptr<float> x,
+                      backend::Ptr<float> v, const Schedule& schedule, const VelocityFn& velocity,
+                      const std::function<void(backend::Ptr<const float> v)>& on_step0_velocity, ModelOutput& out) const;
+
   DebugHook debug_;
 };
 

@@ -783,55 +783,21 @@ double PiZero::flops(int64_t images, int64_t steps_run) const {
 }
 
 ModelOutput PiZero::predict(const std::vector<ModelInput>& batch) {
-  if (batch.empty()) throw Error(ErrorCode::invalid_argument, "predict: empty batch");
-  backend::Backend& be = *be_;
-  const int64_t B = int64_t(batch.size()), C = spec_.chunk_size, A = spec_.max_action_dim;
-  for (int64_t b = 0; b < B; ++b) {
-    if (int64_t(batch[b].state.size()) != spec_.state_dim)
-      throw Error(ErrorCode::invalid_argument, "observation " + std::to_string(b) + ": state has " +
-                                                   std::to_string(batch[b].state.size()) + " values, the model expects " +
-                                                   std::to_string(spec_.state_dim));
-    if (!batch[b].noise.empty() && int64_t(batch[b].noise.size()) != C * A)
-      throw Error(ErrorCode::invalid_argument, "observation " + std::to_string(b) + ": noise has " +
-                                                   std::to_string(batch[b].noise.size()) + " values, expected " +
-                                                   std::to_string(C) + "x" + std::to_string(A));
-  }
-  ModelOutput out;
-  out.batch = B;
-  out.chunk_size = C;
-  out.action_dim = spec_.action_dim;
-  out.warnings.resize(std::size_t(B));
+  ModelOutput out = begin_predict(batch);
   build_prefix(batch, out);
 
   const auto t2 = std::chrono::steady_clock::now();
   run_prefix();
   out.timings.set("prefix", ms_since(t2));
 
-  const auto t3 = std::chrono::steady_clock::now();
-  std::vector<float> noise(std::size_t(B * C * A));
-  for (int64_t b = 0; b < B; ++b) {
-    float* dst = &noise[b * C * A];
-    if (batch[b].noise.empty()) seeded_normal(batch[b].seed, dst, C * A);
-    else std::copy(batch[b].noise.begin(), batch[b].noise.end(), dst);
-  }
-  be.upload(noise.data(), B * C * A, x_t_.at());
-  std::vector<DenoiseControl> controls;
-  controls.reserve(batch.size());
-  for (const auto& item : batch) controls.push_back(item.denoise);
+  // Euler from the noise (t=1) to the actions (t=0), per-item controls (blocks/sampler.h).
+  const int64_t B = int64_t(batch.size()), C = spec_.chunk_size, A = spec_.max_action_dim;
   std::function<void(Ptr<const float>)> on_step0;
   if (dumping()) on_step0 = [&](Ptr<const float> v) { dump_array<float>("mid.velocity.step0", DType::f32, {B, C, A}, v); };
-  out.steps_used = euler_sample(be, x_t_.at(), v_t_.at(), {B, C, A, spec_.action_dim},
-                                Schedule{1.0, 0.0, spec_.num_steps, pz_.float32_time}, controls,
-                                [this](Ptr<const float> x, float time, Ptr<float> v) { denoise_step(x, time, v); },
-                                on_step0);
-  out.timings.set("denoise", ms_since(t3));
+  sample_actions(*be_, batch, x_t_.at(), v_t_.at(), Schedule{1.0, 0.0, spec_.num_steps, pz_.float32_time},
+                 [this](Ptr<const float> x, float time, Ptr<float> v) { denoise_step(x, time, v); }, on_step0, out);
+  // Every item runs until the last one stops: the batch's steps are the most any item used.
   out.flops = flops(images_run_, *std::max_element(out.steps_used.begin(), out.steps_used.end()));
-
-  std::vector<float> x(std::size_t(B * C * A));
-  be.download(Ptr<const float>(x_t_.at()), B * C * A, x.data());
-  out.actions.resize(std::size_t(B * C * spec_.action_dim));
-  for (int64_t r = 0; r < B * C; ++r)
-    std::memcpy(&out.actions[r * spec_.action_dim], &x[r * A], std::size_t(spec_.action_dim) * sizeof(float));
   return out;
 }
 

@@ -60,39 +60,40 @@ bool keeps_copy(const std::string& tensor) {
 constexpr const char* kMissingCamera =
     "an absent camera is replaced by a -1 image that is masked out (as upstream); at least one camera must be present";
 
-const FamilyDescriptor kPi0{
-    .name = "pi0",
-    .summary = "pi0 (lerobot port of openpi): PaliGemma prefix (SigLIP + Gemma 2B), Gemma 300M action expert with a "
-               "state token, flow-matching sampler",
-    .recognition = "config.json \"type\": \"pi0\", lerobot",
-    .recognises = [](const CheckpointProbe& p) { return lerobot::policy_type(p.config) == "pi0"; },
-    .tokenizer = TokenizerKind::sentencepiece,
-    .stages = {"preprocess", "vision", "prefix", "denoise"},
-    .missing_camera_rule = kMissingCamera,
-    .weight_files = &weight_files,
-    .open_weights = &open_weights,
-    .load_normalization = &load_normalization,
-    .load = &load_pi0,
-    .export_plan = &export_plan,
-    .keeps_copy = &keeps_copy,
-};
+// pi0 and pi0.5 differ only in their name, recognition and model class; the files, normalisation and export are
+// lerobot's for both.
+FamilyDescriptor paligemma_family(const char* name, const char* summary, const char* recognition,
+                                  bool (*recognises)(const CheckpointProbe&), decltype(FamilyDescriptor::load) load) {
+  return {
+      .name = name,
+      .summary = summary,
+      .recognition = recognition,
+      .recognises = recognises,
+      .tokenizer = TokenizerKind::sentencepiece,
+      .stages = {"preprocess", "vision", "prefix", "denoise"},
+      .missing_camera_rule = kMissingCamera,
+      .weight_files = &weight_files,
+      .open_weights = &open_weights,
+      .load_normalization = &load_normalization,
+      .load = load,
+      .export_plan = &export_plan,
+      .keeps_copy = &keeps_copy,
+  };
+}
 
-const FamilyDescriptor kPi05{
-    .name = "pi05",
-    .summary = "pi0.5 (lerobot port of openpi): PaliGemma prefix with the discretised state in the prompt, Gemma "
-               "300M action expert with time-conditioned adaptive RMSNorm, flow-matching sampler",
-    .recognition = "config.json \"type\": \"pi05\", lerobot",
-    .recognises = [](const CheckpointProbe& p) { return lerobot::policy_type(p.config) == "pi05"; },
-    .tokenizer = TokenizerKind::sentencepiece,
-    .stages = {"preprocess", "vision", "prefix", "denoise"},
-    .missing_camera_rule = kMissingCamera,
-    .weight_files = &weight_files,
-    .open_weights = &open_weights,
-    .load_normalization = &load_normalization,
-    .load = &load_pi05,
-    .export_plan = &export_plan,
-    .keeps_copy = &keeps_copy,
-};
+const FamilyDescriptor kPi0 = paligemma_family(
+    "pi0",
+    "pi0 (lerobot port of openpi): PaliGemma prefix (SigLIP + Gemma 2B), Gemma 300M action expert with a state token, "
+    "flow-matching sampler",
+    "config.json \"type\": \"pi0\", lerobot",
+    [](const CheckpointProbe& p) { return lerobot::policy_type(p.config) == "pi0"; }, &load_pi0);
+
+const FamilyDescriptor kPi05 = paligemma_family(
+    "pi05",
+    "pi0.5 (lerobot port of openpi): PaliGemma prefix with the discretised state in the prompt, Gemma 300M action "
+    "expert with time-conditioned adaptive RMSNorm, flow-matching sampler",
+    "config.json \"type\": \"pi05\", lerobot",
+    [](const CheckpointProbe& p) { return lerobot::policy_type(p.config) == "pi05"; }, &load_pi05);
 
 }  // namespace
 

@@ -1,0 +1,62 @@
+// The parts of predict() that every flow-matching family shares (Model::begin_predict, Model::sample_actions).
+#include "models/model.h"
+
+#include <algorithm>
+#include <chrono>
+#include <cstring>
+
+#include "core/error.h"
+
+namespace tether::models {
+
+ModelOutput Model::begin_predict(const std::vector<ModelInput>& batch) const {
+  if (batch.empty()) throw Error(ErrorCode::invalid_argument, "predict: empty batch");
+  const ModelSpec& s = spec();
+  const int64_t C = s.chunk_size, A = s.max_action_dim;
+  for (std::size_t b = 0; b < batch.size(); ++b) {
+    if (int64_t(batch[b].state.size()) != s.state_dim)
+      throw Error(ErrorCode::invalid_argument, "observation " + std::to_string(b) + ": state has " +
+                                                   std::to_string(batch[b].state.size()) + " values, the model expects " +
+                                                   std::to_string(s.state_dim));
+    if (!batch[b].noise.empty() && int64_t(batch[b].noise.size()) != C * A)
+      throw Error(ErrorCode::invalid_argument, "observation " + std::to_string(b) + ": noise has " +
+                                                   std::to_string(batch[b].noise.size()) + " values, expected " +
+                                                   std::to_string(C) + "x" + std::to_string(A));
+  }
+  ModelOutput out;
+  out.batch = int64_t(batch.size());
+  out.chunk_size = C;
+  out.action_dim = s.action_dim;
+  out.warnings.resize(batch.size());
+  return out;
+}
+
+void Model::sample_actions(backend::Backend& be, const std::vector<ModelInput>& batch, backend::Ptr<float> x,
+                           backend::Ptr<float> v, const Schedule& schedule, const VelocityFn& velocity,
+                           const std::function<void(backend::Ptr<const float> v)>& on_step0_velocity,
+                           ModelOutput& out) const {
+  const ModelSpec& s = spec();
+  const auto t0 = std::chrono::steady_clock::now();
+  const int64_t B = int64_t(batch.size()), C = s.chunk_size, A = s.max_action_dim;
+  std::vector<float> noise(std::size_t(B * C * A));
+  for (int64_t b = 0; b < B; ++b) {
+    float* dst = &noise[std::size_t(b * C * A)];
+    if (batch[b].noise.empty()) seeded_normal(batch[b].seed, dst, C * A);
+    else std::copy(batch[b].noise.begin(), batch[b].noise.end(), dst);
+  }
+  be.upload(noise.data(), B * C * A, x);
+  std::vector<DenoiseControl> controls;
+  controls.reserve(batch.size());
+  for (const auto& item : batch) controls.push_back(item.denoise);
+  out.steps_used = euler_sample(be, x, v, {B, C, A, s.action_dim}, schedule, controls, velocity, on_step0_velocity);
+  out.timings.set("denoise", std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - t0).count());
+
+  // `noise` is reused for the result: the padded [B*C, A] rows, then cut to action_dim.
+  be.download(backend::Ptr<const float>(x), B * C * A, noise.data());
+  out.actions.resize(std::size_t(B * C * s.action_dim));
+  for (int64_t r = 0; r < B * C; ++r)
+    std::memcpy(&out.actions[std::size_t(r * s.action_dim)], &noise[std::size_t(r * A)],
+                std::size_t(s.action_dim) * sizeof(float));
+}
+
+}  // namespace tether::models
