@@ -59,4 +59,22 @@ void Model::sample_actions(backend::Backend& be, const std::vector<ModelInput>& 
                 std::size_t(s.action_dim) * sizeof(float));
 }
 
+void Model::dump_prefix_kv(backend::Backend& be, const std::vector<backend::Array<float>>& k,
+                           const std::vector<backend::Array<float>>& v, int64_t capacity, int64_t B, int64_t Lp,
+                           int64_t kv_heads, int64_t head_dim) const {
+  if (!debug_ || k.empty()) return;
+  const int64_t kv_dim = kv_heads * head_dim;
+  for (std::size_t layer : {std::size_t(0), k.size() - 1}) {
+    for (const bool is_k : {true, false}) {
+      const auto& cache = is_k ? k[layer] : v[layer];
+      std::vector<float> compact(std::size_t(B * Lp * kv_dim));
+      for (int64_t b = 0; b < B; ++b)
+        be.download(backend::Ptr<const float>(cache.at(b * capacity * kv_dim)), Lp * kv_dim,
+                    &compact[std::size_t(b * Lp * kv_dim)]);
+      debug_(std::string("mid.prefix_") + (is_k ? "k" : "v") + "." + std::to_string(layer),
+             Tensor{DType::f32, {B, Lp, kv_heads, head_dim}, compact.data(), nullptr});
+    }
+  }
+}
+
 }  // namespace tether::models

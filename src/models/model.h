@@ -88,6 +88,20 @@ class Model {
     if (debug_) debug_(name, t);
   }
   bool dumping() const { return bool(debug_); }
+  // Dumps a backend array (downloaded first).
+  template <typename T>
+  void dump_array(backend::Backend& be, const std::string& name, DType dtype, Shape shape,
+                  backend::Ptr<const T> at) const {
+    if (!debug_) return;
+    std::vector<T> host(std::size_t(shape_numel(shape)));
+    be.download(at, int64_t(host.size()), host.data());
+    debug_(name, Tensor{dtype, std::move(shape), host.data(), nullptr});
+  }
+  // Dumps the first and last layer's prefix K/V ("mid.prefix_k.<layer>", "mid.prefix_v.<layer>"), [B, Lp, kv_heads,
+  // head_dim] each, from a cache whose rows hold `kv_heads * head_dim` values.
+  void dump_prefix_kv(backend::Backend& be, const std::vector<backend::Array<float>>& k,
+                      const std::vector<backend::Array<float>>& v, int64_t capacity, int64_t B, int64_t Lp,
+                      int64_t kv_heads, int64_t head_dim) const;
 
   // The frame every flow-matching predict() shares around its own prefix and velocity. begin_predict checks each
   // item's state and noise sizes against spec() and returns the output with its sizes set. sample_actions draws

@@ -237,8 +237,6 @@ class PiZero final : public Model {
   void denoise_step(Ptr<const float> x, float time, Ptr<float> v);
   void ensure_buffers(int64_t batch, int64_t prefix_len);
   double flops(int64_t images, int64_t steps_run) const;
-  template <typename T>
-  void dump_array(const std::string& name, DType dtype, Shape shape, Ptr<const T> at);
 
   bool pi05_ = false;
   PiZeroOptions pz_;
@@ -445,13 +443,6 @@ void PiZero::ensure_buffers(int64_t batch, int64_t prefix_len) {
   time_h_ = be.alloc<float>(E);
   cond_ = be.alloc<float>(E);
   final_mod_ = be.alloc<float>(3 * E);
-}
-
-template <typename T>
-void PiZero::dump_array(const std::string& name, DType dtype, Shape shape, Ptr<const T> at) {
-  std::vector<T> host(std::size_t(shape_numel(shape)));
-  be_->download(at, int64_t(host.size()), host.data());
-  dump(name, Tensor{dtype, std::move(shape), host.data(), nullptr});
 }
 
 // The text the tokenizer sees: pi0 appends a newline (Pi0NewLineProcessor); pi0.5 writes the state into the prompt
@@ -678,7 +669,7 @@ void PiZero::build_prefix(const std::vector<ModelInput>& batch, ModelOutput& out
     if (dumping()) dump("pre.state", Tensor{DType::f32, {B, spec_.max_state_dim}, host_state_.data(), nullptr});
   }
   if (dumping()) {
-    dump_array<float>("mid.prefix_embs", DType::f32, {B, Lp, D}, prefix_x_.at());
+    dump_array<float>(*be_, "mid.prefix_embs", DType::f32, {B, Lp, D}, prefix_x_.at());
     dump("mid.prefix_pad_mask", Tensor{DType::u8, {B, Lp}, prefix_pad_.data(), nullptr});
   }
 }
@@ -689,20 +680,9 @@ void PiZero::build_prefix(const std::vector<ModelInput>& batch, ModelOutput& out
 void PiZero::run_prefix() {
   backend::Backend& be = *be_;
   const int64_t B = B_, Lp = Lp_, C = spec_.chunk_size;
-  const int64_t KvH = text_cfg_.kv_heads, hd = text_cfg_.head_dim, kv_dim = KvH * hd;
+  const int64_t KvH = text_cfg_.kv_heads, hd = text_cfg_.head_dim;
   vlm_.forward(be, prefix_x_.at(), B, Lp, prefix_pos_.at(), prefix_mask_.at(), cache_);
-  if (dumping()) {
-    for (int64_t li : {int64_t(0), vlm_.layers() - 1}) {
-      for (const char* kv : {"k", "v"}) {
-        std::vector<float> compact(std::size_t(B * Lp * kv_dim));
-        for (int64_t b = 0; b < B; ++b)
-          be.download(Ptr<const float>(kv[0] == 'k' ? cache_.k_at(li, b, 0) : cache_.v_at(li, b, 0)), Lp * kv_dim,
-                      &compact[b * Lp * kv_dim]);
-        dump(std::string("mid.prefix_") + kv + "." + std::to_string(li),
-             Tensor{DType::f32, {B, Lp, KvH, hd}, compact.data(), nullptr});
-      }
-    }
-  }
+  dump_prefix_kv(be, cache_.k, cache_.v, cache_.capacity, B, Lp, KvH, hd);
   std::vector<uint8_t> action_prefix_pad = prefix_pad_;
   int64_t action_prefix = Lp;
   if (!pi05_) {
@@ -793,7 +773,7 @@ ModelOutput PiZero::predict(const std::vector<ModelInput>& batch) {
   // Euler from the noise (t=1) to the actions (t=0), per-item controls (blocks/sampler.h).
   const int64_t B = int64_t(batch.size()), C = spec_.chunk_size, A = spec_.max_action_dim;
   std::function<void(Ptr<const float>)> on_step0;
-  if (dumping()) on_step0 = [&](Ptr<const float> v) { dump_array<float>("mid.velocity.step0", DType::f32, {B, C, A}, v); };
+  if (dumping()) on_step0 = [&](Ptr<const float> v) { dump_array<float>(*be_, "mid.velocity.step0", DType::f32, {B, C, A}, v); };
   sample_actions(*be_, batch, x_t_.at(), v_t_.at(), Schedule{1.0, 0.0, spec_.num_steps, pz_.float32_time},
                  [this](Ptr<const float> x, float time, Ptr<float> v) { denoise_step(x, time, v); }, on_step0, out);
   // Every item runs until the last one stops: the batch's steps are the most any item used.

@@ -84,8 +84,6 @@ class SmolVLA final : public Model {
   void ensure_buffers(int64_t batch, int64_t prefix_len);
   double flops(int64_t images, int64_t steps_run) const;
   // Named intermediate from backend memory, copied to the host for the debug hook.
-  template <typename T>
-  void dump_array(const std::string& name, DType dtype, Shape shape, Ptr<const T> at);
 
   ModelSpec spec_;
   TokenizerSettings tok_settings_;
@@ -278,13 +276,6 @@ void SmolVLA::ensure_buffers(int64_t batch, int64_t prefix_len) {
   time_emb_ = be.alloc<float>(E);
 }
 
-template <typename T>
-void SmolVLA::dump_array(const std::string& name, DType dtype, Shape shape, Ptr<const T> at) {
-  std::vector<T> host(std::size_t(shape_numel(shape)));
-  be_->download(at, int64_t(host.size()), host.data());
-  dump(name, Tensor{dtype, std::move(shape), host.data(), nullptr});
-}
-
 void SmolVLA::build_prefix(const std::vector<ModelInput>& batch, ModelOutput& out) {
   backend::Backend& be = *be_;
   const auto t0 = std::chrono::steady_clock::now();
@@ -374,7 +365,7 @@ void SmolVLA::build_prefix(const std::vector<ModelInput>& batch, ModelOutput& ou
   if (dumping()) {
     for (int64_t c = 0; c < ncam; ++c) {
       dump("pre.pixels." + spec_.cameras[c], Tensor{DType::f32, {B, 3, H, W}, &host_pixels_[c * B * img_elems], nullptr});
-      dump_array<float>("mid.vision." + spec_.cameras[c], DType::f32, {B, T, D}, img_tokens_.at(c * B * T * D));
+      dump_array<float>(*be_, "mid.vision." + spec_.cameras[c], DType::f32, {B, T, D}, img_tokens_.at(c * B * T * D));
     }
     dump("pre.lang_tokens", Tensor{DType::i64, {B, L}, enc.ids.data(), nullptr});
     dump("pre.lang_mask", Tensor{DType::u8, {B, L}, enc.mask.data(), nullptr});
@@ -419,7 +410,7 @@ void SmolVLA::build_prefix(const std::vector<ModelInput>& batch, ModelOutput& ou
   be.upload(host_mask_.data(), B * Lp * Lp, prefix_mask_.at());
   be.upload(host_pos_.data(), B * Lp, prefix_pos_.at());
   if (dumping()) {
-    dump_array<float>("mid.prefix_embs", DType::f32, {B, Lp, D}, prefix_x_.at());
+    dump_array<float>(*be_, "mid.prefix_embs", DType::f32, {B, Lp, D}, prefix_x_.at());
     dump("mid.prefix_pad_mask", Tensor{DType::u8, {B, Lp}, prefix_pad_.data(), nullptr});
   }
 }
@@ -428,20 +419,9 @@ void SmolVLA::build_prefix(const std::vector<ModelInput>& batch, ModelOutput& ou
 void SmolVLA::run_prefix() {
   backend::Backend& be = *be_;
   const int64_t B = B_, Lp = Lp_, C = spec_.chunk_size;
-  const int64_t KvH = text_cfg_.kv_heads, hd = text_cfg_.head_dim, kv_dim = KvH * hd;
+  const int64_t KvH = text_cfg_.kv_heads, hd = text_cfg_.head_dim;
   vlm_.forward(be, prefix_x_.at(), B, Lp, prefix_pos_.at(), prefix_mask_.at(), cache_);
-  if (dumping()) {
-    for (int64_t li : {int64_t(0), vlm_.layers() - 1}) {
-      for (const char* kv : {"k", "v"}) {
-        std::vector<float> compact(std::size_t(B * Lp * kv_dim));
-        for (int64_t b = 0; b < B; ++b)
-          be.download(Ptr<const float>(kv[0] == 'k' ? cache_.k_at(li, b, 0) : cache_.v_at(li, b, 0)), Lp * kv_dim,
-                      &compact[b * Lp * kv_dim]);
-        dump(std::string("mid.prefix_") + kv + "." + std::to_string(li),
-             Tensor{DType::f32, {B, Lp, KvH, hd}, compact.data(), nullptr});
-      }
-    }
-  }
+  dump_prefix_kv(be, cache_.k, cache_.v, cache_.capacity, B, Lp, KvH, hd);
   expert_.prepare(be, cache_, Lp);
   // Action tokens see every real prefix token and, among themselves, causally (each is its own attention block);
   // positions continue after the real prefix.
@@ -492,7 +472,7 @@ ModelOutput SmolVLA::predict(const std::vector<ModelInput>& batch) {
   // Euler from the noise (t=1) to the actions (t=0), per-item controls (blocks/sampler.h).
   const int64_t B = int64_t(batch.size()), C = spec_.chunk_size, A = spec_.max_action_dim;
   std::function<void(Ptr<const float>)> on_step0;
-  if (dumping()) on_step0 = [&](Ptr<const float> v) { dump_array<float>("mid.velocity.step0", DType::f32, {B, C, A}, v); };
+  if (dumping()) on_step0 = [&](Ptr<const float> v) { dump_array<float>(*be_, "mid.velocity.step0", DType::f32, {B, C, A}, v); };
   sample_actions(*be_, batch, x_t_.at(), v_t_.at(), Schedule{1.0, 0.0, spec_.num_steps},
                  [this](Ptr<const float> x, float time, Ptr<float> v) { denoise_step(x, time, v); }, on_step0, out);
   // Every item runs until the last one stops: the batch's steps are the most any item used.
