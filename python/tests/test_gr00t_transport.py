@@ -320,10 +320,10 @@ def test_deadline_answers_from_the_last_good_chunk():
 
 def test_breaker_opens(tmp_path):
     fault = tmp_path / "fail-now"
-    fault.touch()
     proc = ServeProcess(["--gr00t-port", "0", "--max-consecutive-crashes", "2", "--inject-failure-file", str(fault)])
     c = Gr00tClient(proc.transport_ports["gr00t"])
     try:
+        fault.touch()  # after the warm-up
         for _ in range(2):
             assert c.get_action(nested_obs())["code"] == "inference_failed"
         err = c.get_action(nested_obs())
