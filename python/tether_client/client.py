@@ -171,7 +171,14 @@ class TetherClient:
         backoff: float = 0.1,
         max_backoff: float = 2.0,
         max_retry_wait: float = 30.0,
+        transport: str = "http",
+        zmq_url: Optional[str] = None,
+        zmq_server_key: Optional[str] = None,
     ) -> None:
+        if transport not in ("http", "zmq"):
+            raise ValueError(f"transport must be 'http' or 'zmq', got {transport!r}")
+        if transport == "zmq" and not zmq_url:
+            raise ValueError("transport='zmq' needs zmq_url, e.g. 'tcp://127.0.0.1:5556' (tether serve --zmq-port)")
         parts = urlsplit(url if "://" in url else "http://" + url)
         if parts.scheme not in ("http", "https"):
             raise ValueError(f"unsupported URL scheme {parts.scheme!r} in {url!r} (use http:// or https://)")
@@ -194,6 +201,12 @@ class TetherClient:
         self._conn_uses = 0
         self._lock = threading.Lock()
         self._local = threading.local()  # per-thread current episode id
+        self.transport = transport
+        self._zmq = None  # transport="zmq": act() goes over this channel; everything else stays on HTTP
+        if transport == "zmq":
+            from .zmq_transport import ZmqChannel
+
+            self._zmq = ZmqChannel(str(zmq_url), timeout, zmq_server_key)
 
     # -- connection -------------------------------------------------------------------------------------------
 
@@ -207,6 +220,8 @@ class TetherClient:
         """Closes the keep-alive connection; a later call opens a new one."""
         with self._lock:
             self._drop_connection()
+        if self._zmq is not None:
+            self._zmq.close()
 
     def _drop_connection(self) -> None:
         if self._conn is not None:
@@ -249,6 +264,8 @@ class TetherClient:
         return _Response(resp.status, {k.lower(): v for k, v in resp.getheaders()}, data)
 
     def _exchange(self, method: str, path: str, body: Optional[bytes], headers: Dict[str, str]) -> _Response:
+        if self._zmq is not None and path == "/act" and isinstance(body, dict):
+            return _Response(*self._zmq.exchange(body))
         with self._lock:
             for attempt in range(2):
                 reused = self._conn is not None and self._conn_uses > 0
@@ -411,10 +428,13 @@ class TetherClient:
         if not np.all(np.isfinite(state_array)):
             raise ValueError("state contains NaN or Inf")
         payload: Dict[str, Any] = {"instruction": instruction, "state": [float(v) for v in state_array]}
+        encode: Any = encode_image
+        if self._zmq is not None:
+            from .zmq_transport import encode_image_zmq as encode
         if image is not None:
-            payload["image"] = encode_image(image)
+            payload["image"] = encode(image)
         if images is not None:
-            payload["images"] = {str(cam): encode_image(img) for cam, img in images.items()}
+            payload["images"] = {str(cam): encode(img) for cam, img in images.items()}
         if seed is not None:
             if isinstance(seed, bool) or not isinstance(seed, numbers.Integral) or seed < 0:
                 raise ValueError(f"seed must be an int >= 0, got {seed!r}")
@@ -438,7 +458,15 @@ class TetherClient:
         headers = {"Content-Type": "application/json"}
         if request_id is not None:
             headers[REQUEST_ID_HEADER] = request_id
-        body = json.dumps(payload, separators=(",", ":"), allow_nan=False).encode("utf-8")
+        body: Any
+        if self._zmq is not None:  # msgpack over ZMQ: the key and the request id travel as fields
+            if self.api_key:
+                payload["api_key"] = self.api_key
+            if request_id is not None:
+                payload["request_id"] = request_id
+            body = payload
+        else:
+            body = json.dumps(payload, separators=(",", ":"), allow_nan=False).encode("utf-8")
 
         start = time.perf_counter()
         response = self._request("POST", "/act", body, headers, retry=True)

@@ -125,6 +125,21 @@ void add_serve_flags(CLI::App* sub, ServeFlags& f) {
       ->group(wedges)->capture_default_str()->check(CLI::IsMember({"every_line", "interval", "never"}));
   sub->add_option("--max-episodes", w.max_episodes, "Episodes kept in memory (least recently used forgotten)")
       ->group(wedges)->capture_default_str()->check(CLI::Range(std::size_t(1), std::size_t(1) << 24));
+  // GR00T's and Tether's ZMQ transports (docs/transports/gr00t.md, zmq.md).
+  const char* zmq_group = "ZMQ transports";
+  sub->add_option("--gr00t-port", o.gr00t_port, "Serve Isaac-GR00T's ZMQ PolicyClient protocol on this port (0: a free one)")
+      ->group(zmq_group);
+  sub->add_option("--gr00t-max-message-bytes", o.gr00t_max_message_bytes, "Larger GR00T messages: the peer is dropped")
+      ->group(zmq_group)->capture_default_str();
+  sub->add_flag("--gr00t-allow-kill", o.gr00t_allow_kill, "GR00T's kill endpoint shuts the server down (else refused)")
+      ->group(zmq_group);
+  sub->add_option("--zmq-port", o.zmq_port, "Serve Tether's ZMQ protocol (ROUTER) on this port (0: a free one)")
+      ->group(zmq_group);
+  sub->add_option("--zmq-max-message-bytes", o.zmq_max_message_bytes, "Larger Tether ZMQ messages: the peer is dropped")
+      ->group(zmq_group)->capture_default_str();
+  sub->add_option("--zmq-curve-secret-file", o.zmq_curve_secret_file,
+                  "Z85 CURVE secret key: the --zmq-port is encrypted (clients need the public key it prints)")
+      ->group(zmq_group);
 }
 
 

@@ -157,11 +157,11 @@ ActPipeline::Act ActPipeline::parse(const ActInput& input, const RequestContext&
   auto& wedges = host_.wedges();
   const auto t_parse = Clock::now();
   Act a;
+  trace.transport = ctx.transport;  // before decoding: a request refused there is traced with its transport too
   a.parsed = input.decode(engine.spec);
   policy::Observation& obs = a.parsed.observation;
   obs.seed = a.parsed.seed ? *a.parsed.seed : seed_from_request_id(ctx.request_id);
   trace.task = obs.instruction;
-  trace.transport = ctx.transport;
   trace.has_episode = a.parsed.episode_id.has_value();
   trace.episode_id = a.parsed.episode_id.value_or("");
   if (wedges.recorder()) trace.inputs = trace_inputs(obs, w.record_images_full);

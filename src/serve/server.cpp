@@ -46,7 +46,8 @@ struct Server::Impl {
         pipeline(opts, host, metrics),
         router(opts, host, metrics, pipeline),
         sessions(opts, router, metrics),
-        transports(make_transports({opts, host, metrics, pipeline, ioc})) {}
+        transports(make_transports({opts, host, metrics, pipeline, ioc,
+                                     [this] { net::post(accept_strand, [this] { begin_shutdown(); }); }})) {}
 
   int in_flight() const {
     int n = sessions.in_flight();

@@ -29,6 +29,11 @@ struct ServerOptions {
   std::optional<uint16_t> openpi_port;  // openpi's WebSocket policy server protocol
   std::optional<uint16_t> gr00t_port;   // Isaac-GR00T's ZMQ PolicyClient protocol
   std::optional<uint16_t> zmq_port;     // Tether's own ZMQ protocol (ROUTER: many robots on one port)
+  // The ZMQ transports' own limits (docs/transports/gr00t.md, zmq.md): a larger frame makes libzmq drop the peer.
+  std::size_t gr00t_max_message_bytes = 64 * 1024 * 1024;
+  bool gr00t_allow_kill = false;  // GR00T's "kill" endpoint shuts the server down (else it is refused)
+  std::size_t zmq_max_message_bytes = 64 * 1024 * 1024;
+  std::string zmq_curve_secret_file;  // Z85 CURVE secret key: the Tether ZMQ port encrypts (empty: plain TCP)
 };
 
 }  // namespace tether::serve

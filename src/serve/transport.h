@@ -6,6 +6,7 @@
 
 #include <boost/asio/io_context.hpp>
 #include <cstdint>
+#include <functional>
 #include <memory>
 #include <string>
 #include <vector>
@@ -24,6 +25,7 @@ struct TransportContext {
   Metrics& metrics;
   ActPipeline& pipeline;
   boost::asio::io_context& ioc;  // the server's I/O threads: pipeline.run is awaited here
+  std::function<void()> request_shutdown = {};  // a graceful stop, as SIGTERM (GR00T's kill endpoint)
 };
 
 class Transport {

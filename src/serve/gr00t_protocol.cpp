@@ -1,0 +1,379 @@
+// GR00T's ZMQ protocol: decoding requests and encoding replies (no sockets here).
+#include "serve/gr00t_protocol.h"
+
+#include <cmath>
+
+#include "serve/http_error.h"
+#include "serve/msgpack_json.h"
+#include "serve/ndarray.h"
+
+namespace tether::serve::gr00t {
+
+namespace {
+
+[[noreturn]] void fail(const std::string& code, const std::string& message) { throw HttpError(400, code, message); }
+
+std::string kind_of(const msgpack::Value& v) { return msgpack::kind_name(v.kind); }
+
+bool starts_with(std::string_view s, std::string_view p) { return s.substr(0, p.size()) == p; }
+
+// An {"__ndarray_class__": true, "as_npy": bin} map as an array; `field` names it in errors.
+NdArray ndarray(const msgpack::Value& v, const std::string& field) {
+  const msgpack::Value* tag = v.is_map() ? v.find("__ndarray_class__") : nullptr;
+  const msgpack::Value* npy = v.is_map() ? v.find("as_npy") : nullptr;
+  if (!tag || !npy)
+    fail("invalid_field", field + ": expected a numpy array ({\"__ndarray_class__\": true, \"as_npy\": <npy bytes>}), got " +
+                              (v.is_map() ? std::string("a map without them") : kind_of(v)));
+  if (!npy->is_text_or_bin()) fail("invalid_field", field + ".as_npy: expected bytes, got " + kind_of(*npy));
+  try {
+    return parse_npy(npy->bytes);
+  } catch (const ArrayError& e) {
+    fail("invalid_field", field + ": " + e.what());
+  }
+}
+
+struct Fields {
+  std::vector<std::pair<std::string, const msgpack::Value*>> video, state;
+  const msgpack::Value* language = nullptr;
+  std::string language_field;
+};
+
+const msgpack::Value* observation_of(const Call& call) {
+  if (!call.data.is_map()) fail("missing_field", "data: get_action needs {\"observation\": {...}}");
+  const msgpack::Value* obs = call.data.find("observation");
+  if (!obs || obs->is_nil()) fail("missing_field", "data.observation is required");
+  if (!obs->is_map()) fail("invalid_field", "data.observation: expected a map, got " + kind_of(*obs));
+  return obs;
+}
+
+bool is_nested(const msgpack::Value& obs) {
+  for (const char* k : {"video", "state", "language"}) {
+    const msgpack::Value* v = obs.find(k);
+    if (v && v->is_map()) return true;
+  }
+  return false;
+}
+
+std::string key_text(const msgpack::Value& k, const std::string& where) {
+  if (!k.is_text_or_bin()) fail("invalid_field", where + ": keys must be strings, got " + kind_of(k));
+  return std::string(k.bytes);
+}
+
+Fields fields_of(const msgpack::Value& obs) {
+  Fields f;
+  if (is_nested(obs)) {
+    for (const auto& [k, v] : obs.entries) {
+      const std::string key = key_text(k, "observation");
+      if (key != "video" && key != "state" && key != "language")
+        fail("unknown_field", "observation." + key + ": unknown modality (accepted: video, state, language)");
+      if (!v.is_map()) fail("invalid_field", "observation." + key + ": expected a map, got " + kind_of(v));
+      if (key == "language") {
+        for (const auto& [lk, lv] : v.entries) {
+          const std::string name = key_text(lk, "observation.language");
+          if (f.language) fail("invalid_field", "observation.language: one instruction key is supported, got another: " + name);
+          f.language = &lv;
+          f.language_field = "observation.language." + name;
+        }
+        continue;
+      }
+      auto& out = key == "video" ? f.video : f.state;
+      for (const auto& [gk, gv] : v.entries) out.emplace_back(key_text(gk, "observation." + key), &gv);
+    }
+    return f;
+  }
+  for (const auto& [k, v] : obs.entries) {
+    const std::string key = key_text(k, "observation");
+    if (starts_with(key, "video.")) {
+      f.video.emplace_back(key.substr(6), &v);
+    } else if (starts_with(key, "state.")) {
+      f.state.emplace_back(key.substr(6), &v);
+    } else if (key == "task" || key == "language.task" || key == "annotation.human.coarse_action" ||
+               starts_with(key, "annotation.") || starts_with(key, "language.")) {
+      if (f.language) fail("invalid_field", "observation: one instruction key is supported, got '" + f.language_field.substr(12) + "' and '" + key + "'");
+      f.language = &v;
+      f.language_field = "observation." + key;
+    } else {
+      fail("unknown_field", "observation." + key + ": unknown key (accepted: video.<camera>, state.<group>, task)");
+    }
+  }
+  return f;
+}
+
+std::string video_field(const std::string& name) { return "observation.video." + name; }
+
+// The instruction of item `index`: [[str]] (B, T: the last), [str] (B), or one str for every item.
+std::string instruction_of(const msgpack::Value& v, int64_t index, int64_t batch, const std::string& field) {
+  if (v.is_str()) return std::string(v.bytes);
+  if (!v.is_array()) fail("invalid_field", field + ": expected a list of strings, one per batch item, got " + kind_of(v));
+  if (int64_t(v.items.size()) != batch)
+    fail("invalid_field", field + ": " + std::to_string(v.items.size()) + " items for a batch of " + std::to_string(batch));
+  const msgpack::Value& item = v.items[std::size_t(index)];
+  const std::string where = field + "[" + std::to_string(index) + "]";
+  if (item.is_str()) return std::string(item.bytes);
+  if (item.is_array() && !item.items.empty() && item.items.back().is_str()) return std::string(item.items.back().bytes);
+  fail("invalid_field", where + ": expected a string or a list of strings, got " + kind_of(item));
+}
+
+// options.<name>: one value for every item, or a list with one per item; null when absent.
+const msgpack::Value* option(const Call& call, const char* name, int64_t index, int64_t batch) {
+  const msgpack::Value* options = call.data.is_map() ? call.data.find("options") : nullptr;
+  if (!options || options->is_nil()) return nullptr;
+  if (!options->is_map()) fail("invalid_field", "data.options: expected a map or null, got " + kind_of(*options));
+  const msgpack::Value* v = options->find(name);
+  if (!v || v->is_nil()) return nullptr;
+  if (!v->is_array()) return v;
+  if (int64_t(v->items.size()) != batch)
+    fail("invalid_field", std::string("data.options.") + name + ": " + std::to_string(v->items.size()) +
+                              " values for a batch of " + std::to_string(batch));
+  return &v->items[std::size_t(index)];
+}
+
+void write_modality(msgpack::Writer& w, const std::vector<int64_t>& delta, const std::vector<std::string>& keys) {
+  w.map(2);
+  w.str("__ModalityConfig_class__");
+  w.boolean(true);
+  w.str("as_json");
+  w.map(5);
+  w.str("delta_indices");
+  w.array(uint32_t(delta.size()));
+  for (int64_t d : delta) w.integer(d);
+  w.str("modality_keys");
+  w.array(uint32_t(keys.size()));
+  for (const auto& k : keys) w.str(k);
+  for (const char* k : {"sin_cos_embedding_keys", "mean_std_embedding_keys", "action_configs"}) {
+    w.str(k);
+    w.nil();
+  }
+}
+
+}  // namespace
+
+Call parse_call(std::string_view message) {
+  msgpack::Value root;
+  try {
+    root = msgpack::parse(message);
+  } catch (const msgpack::Error& e) {
+    fail("bad_msgpack", std::string("the message is not valid msgpack: ") + e.what());
+  }
+  if (!root.is_map()) fail("bad_msgpack", "the message must be a msgpack map {endpoint, data, api_token}, got " + kind_of(root));
+  Call call;
+  std::string endpoint = "get_action";
+  for (auto& [k, v] : root.entries) {
+    if (!k.is_text_or_bin()) continue;
+    if (k.bytes == "endpoint") {
+      if (!v.is_text_or_bin()) fail("invalid_field", "endpoint: expected a string, got " + kind_of(v));
+      endpoint = std::string(v.bytes);
+    } else if (k.bytes == "api_token") {
+      if (v.is_nil()) continue;
+      if (!v.is_text_or_bin()) fail("invalid_field", "api_token: expected a string, got " + kind_of(v));
+      call.api_token = std::string(v.bytes);
+    } else if (k.bytes == "data") {
+      call.data = std::move(v);
+    }
+  }
+  if (endpoint == "ping") call.endpoint = Endpoint::ping;
+  else if (endpoint == "kill") call.endpoint = Endpoint::kill;
+  else if (endpoint == "get_action") call.endpoint = Endpoint::get_action;
+  else if (endpoint == "reset") call.endpoint = Endpoint::reset;
+  else if (endpoint == "get_modality_config") call.endpoint = Endpoint::get_modality_config;
+  else fail("unknown_endpoint", "Unknown endpoint: " + endpoint.substr(0, 64));
+  return call;
+}
+
+Layout observation_layout(const Call& call) {
+  Layout layout;
+  try {
+    const msgpack::Value* obs = observation_of(call);
+    layout.flat = !is_nested(*obs);
+    const Fields f = fields_of(*obs);
+    if (f.video.empty() && f.state.empty()) return layout;
+    const msgpack::Value* first = !f.video.empty() ? f.video.front().second : f.state.front().second;
+    const NdArray a = ndarray(*first, "observation");
+    if (!a.shape.empty() && a.shape[0] >= 1) layout.batch = a.shape[0];
+  } catch (const HttpError&) {
+  }
+  return layout;
+}
+
+ActRequest decode_item(const Call& call, int64_t index, const models::ModelSpec& spec) {
+  const msgpack::Value* obs = observation_of(call);
+  const bool flat = !is_nested(*obs);
+  const Fields f = fields_of(*obs);
+  int64_t batch = -1;
+  auto check_batch = [&](const NdArray& a, const std::string& field) {
+    if (a.shape.empty() || a.shape[0] < 1) fail("invalid_field", field + ": the first dimension is the batch, got an empty one");
+    if (batch < 0) batch = a.shape[0];
+    else if (a.shape[0] != batch)
+      fail("invalid_field", field + ": batch size " + std::to_string(a.shape[0]) + ", other arrays have " + std::to_string(batch));
+  };
+  ActRequest req;
+  policy::Observation& o = req.observation;
+  for (const auto& [name, v] : f.video) {
+    const std::string field = video_field(name);
+    const auto camera = resolve_camera(name, spec);
+    if (!camera) {
+      std::string known;
+      for (const auto& c : spec.cameras) known += (known.empty() ? "" : ", ") + camera_name(c, spec);
+      fail("unknown_camera", field + ": the model has no camera '" + name + "' (it has: " + known + ")");
+    }
+    const NdArray a = ndarray(*v, field);
+    if (a.dtype != DType::u8) fail("invalid_field", field + ": expected uint8 pixels, got " + dtype_name(a.dtype));
+    if (a.shape.size() != 5 && a.shape.size() != 4)
+      fail("invalid_field", field + ": expected shape (B, T, H, W, 3) or (B, H, W, 3), got " + std::to_string(a.shape.size()) + " dimensions");
+    if (a.shape.back() != 3) fail("invalid_field", field + ": expected 3 channels (RGB), got " + std::to_string(a.shape.back()));
+    check_batch(a, field);
+    const int64_t frames = a.shape.size() == 5 ? a.shape[1] : 1;
+    const int64_t h = a.shape[a.shape.size() - 3], w = a.shape[a.shape.size() - 2];
+    if (frames < 1 || h < 1 || w < 1) fail("invalid_field", field + ": an empty image");
+    if (index >= batch) fail("invalid_field", field + ": no batch item " + std::to_string(index));
+    if (o.images.count(*camera)) fail("invalid_field", field + ": camera '" + *camera + "' is given twice");
+    // T > 1 (a history of frames): the model takes one frame per camera, the latest.
+    const std::size_t frame_bytes = std::size_t(h) * std::size_t(w) * 3;
+    const std::size_t offset = (std::size_t(index) * std::size_t(frames) + std::size_t(frames - 1)) * frame_bytes;
+    o.images[*camera] = raw_rgb_image(reinterpret_cast<const uint8_t*>(a.data.data()) + offset, h, w, field);
+  }
+  const std::string group = state_group(spec);
+  if (f.state.empty())
+    fail("missing_field", "observation.state." + group + " is required (" +
+                              std::to_string(spec.state_dim) + " values)");
+  for (const auto& [name, v] : f.state) {
+    const std::string field = "observation.state." + name;
+    if (name != group && name != spec.state_key)
+      fail("unknown_field", field + ": unknown state group (the model has one: '" + group + "', " +
+                                std::to_string(spec.state_dim) + " values)");
+    const NdArray a = ndarray(*v, field);
+    if (a.dtype == DType::boolean) fail("invalid_field", field + ": expected float32 values, got bool");
+    if (a.shape.size() != 3 && a.shape.size() != 2)
+      fail("invalid_field", field + ": expected shape (B, T, D) or (B, D), got " + std::to_string(a.shape.size()) + " dimensions");
+    check_batch(a, field);
+    const int64_t steps = a.shape.size() == 3 ? a.shape[1] : 1;
+    const int64_t dim = a.shape.back();
+    if (steps < 1) fail("invalid_field", field + ": no time step");
+    if (dim != spec.state_dim)
+      fail("invalid_state", field + " has " + std::to_string(dim) + " values, the model expects " + std::to_string(spec.state_dim));
+    if (index >= batch) fail("invalid_field", field + ": no batch item " + std::to_string(index));
+    std::vector<float> all;
+    try {
+      all = to_float32(a);
+    } catch (const ArrayError& e) {
+      fail("invalid_field", field + ": " + e.what());
+    }
+    const std::size_t start = (std::size_t(index) * std::size_t(steps) + std::size_t(steps - 1)) * std::size_t(dim);
+    o.state.assign(all.begin() + std::ptrdiff_t(start), all.begin() + std::ptrdiff_t(start + std::size_t(dim)));
+  }
+  if (batch < 1) batch = 1;
+  if (!f.language) fail("missing_field", flat ? "observation.task is required (the instruction, one per batch item)"
+                                              : "observation.language.task is required (the instruction, [[str]] per batch item)");
+  o.instruction = instruction_of(*f.language, index, batch, f.language_field);
+  if (const msgpack::Value* seed = option(call, "seed", index, batch)) {
+    if (seed->kind != msgpack::Kind::integer || (!seed->above_int64 && seed->integer < 0))
+      fail("invalid_field", "data.options.seed: expected an integer >= 0");
+    req.seed = seed->above_int64 ? seed->uinteger : uint64_t(seed->integer);
+  }
+  if (const msgpack::Value* ep = option(call, "episode_id", index, batch)) {
+    if (!ep->is_str()) fail("invalid_field", "data.options.episode_id: expected a string, got " + kind_of(*ep));
+    req.episode_id = std::string(ep->bytes);
+  }
+  check_observation(o, spec);
+  return req;
+}
+
+std::string state_group(const models::ModelSpec& spec) {
+  std::string k = spec.state_key.empty() ? "observation.state" : spec.state_key;
+  if (starts_with(k, "observation.")) k = k.substr(12);
+  return k.empty() ? "state" : k;
+}
+
+std::string action_group(const models::ModelSpec& spec) { return spec.action_key.empty() ? "action" : spec.action_key; }
+
+std::string camera_name(const std::string& key, const models::ModelSpec& spec) {
+  if (!spec.camera_prefix.empty() && starts_with(key, spec.camera_prefix)) return key.substr(spec.camera_prefix.size());
+  return key;
+}
+
+std::string ping_reply() {
+  msgpack::Writer w;
+  w.map(2);
+  w.str("status");
+  w.str("ok");
+  w.str("message");
+  w.str("Server is running");
+  return w.take();
+}
+
+std::string reset_reply() {
+  msgpack::Writer w;
+  w.map(0);
+  return w.take();
+}
+
+std::string kill_reply() {
+  msgpack::Writer w;
+  w.nil();
+  return w.take();
+}
+
+std::string error_reply(int status, const std::string& code, const std::string& message) {
+  msgpack::Writer w;
+  w.map(3);
+  w.str("error");
+  // Upstream's own wording for a bad token, which its client shows as "Server error: ...".
+  w.str(status == 401 ? "Unauthorized: Invalid API token (" + message + ")" : message);
+  w.str("code");
+  w.str(code);
+  w.str("status");
+  w.integer(status);
+  return w.take();
+}
+
+std::string modality_config_reply(const models::ModelSpec& spec, int64_t action_dim) {
+  std::vector<std::string> cameras;
+  for (const auto& c : spec.cameras) cameras.push_back(camera_name(c, spec));
+  std::vector<int64_t> horizon;
+  for (int64_t i = 0; i < spec.chunk_size; ++i) horizon.push_back(i);
+  msgpack::Writer w;
+  w.map(5);
+  w.str("video");
+  write_modality(w, {0}, cameras);
+  w.str("state");
+  write_modality(w, {0}, {state_group(spec)});
+  w.str("action");
+  write_modality(w, horizon, {action_group(spec)});
+  w.str("language");
+  write_modality(w, {0}, {"task"});
+  Json tether = {{"family", spec.family},
+                 {"cameras", cameras},
+                 {"camera_keys", spec.cameras},
+                 {"state_dim", spec.state_dim},
+                 {"action_dim", action_dim},
+                 {"chunk_size", spec.chunk_size},
+                 {"image_height", spec.image_height},
+                 {"image_width", spec.image_width}};
+  w.str("tether");
+  msgpack::write_json(w, tether);
+  return w.take();
+}
+
+void write_ndarray(msgpack::Writer& w, const std::string& npy) {
+  w.map(2);
+  w.str("__ndarray_class__");
+  w.boolean(true);
+  w.str("as_npy");
+  w.bin(npy);
+}
+
+std::string action_reply(const std::string& group_key, int64_t batch, int64_t rows, int64_t dim,
+                         const std::vector<float>& actions, const Json& items) {
+  msgpack::Writer w;
+  w.array(2);
+  w.map(1);
+  w.str(group_key);
+  write_ndarray(w, write_npy(DType::f32, {batch, rows, dim},
+                             std::string_view(reinterpret_cast<const char*>(actions.data()), actions.size() * sizeof(float))));
+  w.map(1);
+  w.str("tether");
+  msgpack::write_json(w, items);
+  return w.take();
+}
+
+}  // namespace tether::serve::gr00t

@@ -1,0 +1,70 @@
+// Isaac-GR00T's ZMQ PolicyClient protocol, as pure functions: a request's bytes to an endpoint call and, for
+// get_action, each batch item to an ActRequest; the replies back to bytes. Requests are msgpack maps
+// {"endpoint", "data", "api_token"}; arrays travel as {"__ndarray_class__": true, "as_npy": <.npy bytes>} (parsed
+// without pickle). See docs/transports/gr00t.md.
+#pragma once
+
+#include <cstdint>
+#include <memory>
+#include <string>
+#include <string_view>
+#include <vector>
+
+#include "core/json_util.h"
+#include "models/model.h"
+#include "serve/act_request.h"
+#include "serve/msgpack.h"
+
+namespace tether::serve::gr00t {
+
+enum class Endpoint { ping, kill, get_action, reset, get_modality_config };
+
+struct Call {
+  Endpoint endpoint = Endpoint::get_action;  // upstream's default when the field is absent
+  std::string api_token;                     // empty: none given
+  msgpack::Value data;                       // the "data" map (nil when absent); views into the parsed message
+};
+
+// Throws HttpError(400): bad_msgpack (not msgpack, or not a map), invalid_field (a field of the wrong type),
+// unknown_endpoint. `message` must outlive the Call.
+Call parse_call(std::string_view message);
+
+// How get_action's observation is laid out: nested {"video": {cam: ...}, "state": {...}, "language": {...}} (the
+// Gr00tPolicy form: actions are answered as {group: ...}) or flat {"video.cam", "state.group", "task"} (the
+// simulation wrapper's: actions are answered as {"action.group": ...}).
+struct Layout {
+  bool flat = false;
+  int64_t batch = 1;  // B, from the first video (or state) array; 1 when it cannot be told (decode names the fault)
+};
+Layout observation_layout(const Call& call);
+
+// Item `index` of get_action's batch as an ActRequest: the last frame of each video (B, T, H, W, 3) uint8, the last
+// row of the state group (B, T, D), the item's language instruction, and options.seed / options.episode_id (one value,
+// or a list with one per item). Throws HttpError(400, code) naming the field: missing_field, invalid_field,
+// invalid_state, unknown_camera, unknown_field.
+ActRequest decode_item(const Call& call, int64_t index, const models::ModelSpec& spec);
+
+// The state and action group names a lerobot checkpoint is served under: its feature keys without "observation."
+// ("observation.state" -> "state", "action" -> "action").
+std::string state_group(const models::ModelSpec& spec);
+std::string action_group(const models::ModelSpec& spec);
+// A camera's name on the wire: the checkpoint's key without spec.camera_prefix.
+std::string camera_name(const std::string& key, const models::ModelSpec& spec);
+
+// Replies, as upstream's PolicyServer shapes them.
+std::string ping_reply();   // {"status": "ok", "message": "Server is running"}
+std::string reset_reply();  // {}
+std::string kill_reply();   // nil
+// {"error": message, "code": code, "status": status}: upstream's client raises on the "error" key.
+std::string error_reply(int status, const std::string& code, const std::string& message);
+// {video, state, action, language}: each a {"__ModalityConfig_class__": true, "as_json": {delta_indices,
+// modality_keys, ...}}, plus "tether": {cameras, state_dim, action_dim, chunk_size, ...} (a plain map).
+std::string modality_config_reply(const models::ModelSpec& spec, int64_t action_dim);
+// [ {group: float32 array (B, rows, dim)}, info ], `actions` holding B * rows * dim values; info is {"tether": items}.
+std::string action_reply(const std::string& group_key, int64_t batch, int64_t rows, int64_t dim,
+                         const std::vector<float>& actions, const Json& items);
+
+// {"__ndarray_class__": true, "as_npy": npy} for an array, as upstream's MsgSerializer writes numpy arrays.
+void write_ndarray(msgpack::Writer& w, const std::string& npy);
+
+}  // namespace tether::serve::gr00t

@@ -1,0 +1,41 @@
+// Tether's own ZMQ protocol, as pure functions: a msgpack map with /act's fields (images as PNG/JPEG bytes or raw
+// {"data": bin, "shape": [H, W, 3]}) plus "api_key", "request_id" and "id" (echoed verbatim, so a DEALER client can
+// match replies), and the reply: /act's answer as a msgpack map, with "status". See docs/transports/zmq.md.
+#pragma once
+
+#include <string>
+#include <string_view>
+
+#include "core/json_util.h"
+#include "models/model.h"
+#include "serve/act_request.h"
+#include "serve/msgpack.h"
+
+namespace tether::serve::zmqp {
+
+struct Request {
+  msgpack::Value root;     // the whole map; views into the message, which must outlive it
+  std::string api_key;     // empty: none
+  std::string request_id;  // the client's suggestion (used when valid, see request_id_or_new); empty: none
+  Json id;                 // the client's "id" (a string or an integer), null when absent
+};
+
+// The envelope only: msgpack map, api_key, request_id, id. Throws HttpError(400, bad_msgpack / invalid_field).
+Request parse_request(std::string_view message);
+
+// The /act fields of a parsed request (instruction, state, image or images, episode_id, seed, rtc). Throws
+// HttpError(400, code) with /act's codes: missing_field, invalid_field, invalid_state, invalid_image, unknown_camera,
+// unknown_field.
+ActRequest decode_act(const Request& request, const models::ModelSpec& spec);
+
+// Bytes to ActRequest in one step (the fuzz target's entry).
+ActRequest decode_message(std::string_view message, const models::ModelSpec& spec);
+
+// A reply: `body` (the /act answer or {"error": {code, message}}) as a map, `actions` rows as float32 arrays, plus
+// "status", "request_id", "retry_after_s" on a 503, and "id" when the request had one.
+std::string encode_reply(int status, const Json& body, int retry_after_s, const std::string& request_id, const Json& id);
+
+// An error reply for a message that could not be read at all.
+std::string error_reply(int status, const std::string& code, const std::string& message);
+
+}  // namespace tether::serve::zmqp

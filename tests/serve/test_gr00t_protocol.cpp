@@ -1,0 +1,272 @@
+// GR00T's ZMQ protocol decoding and replies: both observation layouts, batches and histories, every refusal naming
+// its field, and replies in the shapes upstream's PolicyClient reads.
+#include <gtest/gtest.h>
+
+#include <cstring>
+
+#include "serve/gr00t_protocol.h"
+#include "serve/http_error.h"
+#include "serve/ndarray.h"
+
+using namespace tether;
+using NpType = tether::serve::DType;
+using namespace tether::serve;
+namespace mp = tether::serve::msgpack;
+
+namespace {
+
+models::ModelSpec spec() {
+  models::ModelSpec s;
+  s.family = "smolvla";
+  s.cameras = {"observation.images.front", "observation.images.wrist"};
+  s.camera_prefix = "observation.images.";
+  s.state_key = "observation.state";
+  s.action_key = "action";
+  s.state_dim = 3;
+  s.action_dim = 3;
+  s.chunk_size = 4;
+  return s;
+}
+
+void ndarray(mp::Writer& w, NpType t, std::vector<int64_t> shape, const std::string& bytes) {
+  gr00t::write_ndarray(w, write_npy(t, shape, bytes));
+}
+
+// (B, T, H, W, 3) frames whose every pixel of item b, frame t is 10 * b + t.
+std::string video_bytes(int64_t b, int64_t t, int64_t h, int64_t w) {
+  std::string out;
+  for (int64_t i = 0; i < b; ++i)
+    for (int64_t j = 0; j < t; ++j) out += std::string(std::size_t(h * w * 3), char(10 * i + j));
+  return out;
+}
+
+std::string floats(const std::vector<float>& v) { return std::string(reinterpret_cast<const char*>(v.data()), v.size() * 4); }
+
+struct Obs {
+  int64_t batch = 1, frames = 1;
+  bool flat = false;
+  std::string camera = "front";
+  std::string group = "state";
+  int64_t state_dim = 3;
+  NpType video_dtype = NpType::u8;
+};
+
+std::string request(const Obs& o, const std::string& token = "", bool with_options = false) {
+  mp::Writer w;
+  w.map(token.empty() ? 2 : 3);
+  w.str("endpoint");
+  w.str("get_action");
+  if (!token.empty()) {
+    w.str("api_token");
+    w.str(token);
+  }
+  w.str("data");
+  w.map(with_options ? 2 : 1);
+  w.str("observation");
+  std::vector<float> state;
+  for (int64_t b = 0; b < o.batch; ++b)
+    for (int64_t t = 0; t < o.frames; ++t)
+      for (int64_t d = 0; d < o.state_dim; ++d) state.push_back(float(100 * b + 10 * t + d));
+  auto language = [&] {
+    w.array(uint32_t(o.batch));
+    for (int64_t b = 0; b < o.batch; ++b) {
+      w.array(1);
+      w.str("task " + std::to_string(b));
+    }
+  };
+  if (o.flat) {
+    w.map(3);
+    w.str("video." + o.camera);
+    ndarray(w, o.video_dtype, {o.batch, o.frames, 2, 2, 3}, video_bytes(o.batch, o.frames, 2, 2));
+    w.str("state." + o.group);
+    ndarray(w, NpType::f32, {o.batch, o.frames, o.state_dim}, floats(state));
+    w.str("task");
+    w.array(uint32_t(o.batch));
+    for (int64_t b = 0; b < o.batch; ++b) w.str("task " + std::to_string(b));
+  } else {
+    w.map(3);
+    w.str("video");
+    w.map(1);
+    w.str(o.camera);
+    ndarray(w, o.video_dtype, {o.batch, o.frames, 2, 2, 3}, video_bytes(o.batch, o.frames, 2, 2));
+    w.str("state");
+    w.map(1);
+    w.str(o.group);
+    ndarray(w, NpType::f32, {o.batch, o.frames, o.state_dim}, floats(state));
+    w.str("language");
+    w.map(1);
+    w.str("task");
+    language();
+  }
+  if (with_options) {
+    w.str("options");
+    w.map(2);
+    w.str("seed");
+    w.integer(7);
+    w.str("episode_id");
+    w.array(uint32_t(o.batch));
+    for (int64_t b = 0; b < o.batch; ++b) w.str("ep" + std::to_string(b));
+  }
+  return w.take();
+}
+
+std::string code_of(const std::string& message, int64_t index = 0) {
+  try {
+    const gr00t::Call call = gr00t::parse_call(message);
+    gr00t::decode_item(call, index, spec());
+  } catch (const HttpError& e) {
+    EXPECT_EQ(e.status(), 400);
+    return e.code() + ": " + e.what();
+  }
+  return "ok";
+}
+
+}  // namespace
+
+TEST(Gr00tProtocol, NestedBatchWithHistoryTakesEachItemsLastFrame) {
+  Obs o;
+  o.batch = 2;
+  o.frames = 3;
+  const std::string msg = request(o, "secret", true);
+  const gr00t::Call call = gr00t::parse_call(msg);
+  EXPECT_EQ(call.endpoint, gr00t::Endpoint::get_action);
+  EXPECT_EQ(call.api_token, "secret");
+  const gr00t::Layout layout = gr00t::observation_layout(call);
+  EXPECT_FALSE(layout.flat);
+  EXPECT_EQ(layout.batch, 2);
+  for (int64_t b = 0; b < 2; ++b) {
+    const ActRequest r = gr00t::decode_item(call, b, spec());
+    const auto& img = r.observation.images.at("observation.images.front");
+    EXPECT_EQ(img.height, 2);
+    EXPECT_EQ(img.width, 2);
+    EXPECT_EQ(uint8_t(img.rgb[0]), uint8_t(10 * b + 2));  // the last of 3 frames
+    EXPECT_EQ(r.observation.state, (std::vector<float>{float(100 * b + 20), float(100 * b + 21), float(100 * b + 22)}));
+    EXPECT_EQ(r.observation.instruction, "task " + std::to_string(b));
+    EXPECT_EQ(r.seed, 7u);
+    EXPECT_EQ(r.episode_id, "ep" + std::to_string(b));
+  }
+}
+
+TEST(Gr00tProtocol, FlatLayoutAndFullCameraKey) {
+  Obs o;
+  o.flat = true;
+  o.camera = "observation.images.wrist";
+  const std::string msg = request(o);
+  const gr00t::Call call = gr00t::parse_call(msg);
+  EXPECT_TRUE(gr00t::observation_layout(call).flat);
+  const ActRequest r = gr00t::decode_item(call, 0, spec());
+  EXPECT_EQ(r.observation.images.count("observation.images.wrist"), 1u);
+  EXPECT_EQ(r.observation.instruction, "task 0");
+  EXPECT_FALSE(r.seed.has_value());
+}
+
+TEST(Gr00tProtocol, Endpoints) {
+  auto call_of = [](const std::string& endpoint) {
+    mp::Writer w;
+    w.map(1);
+    w.str("endpoint");
+    w.str(endpoint);
+    return w.take();
+  };
+  for (const auto& [name, ep] : std::vector<std::pair<std::string, gr00t::Endpoint>>{
+           {"ping", gr00t::Endpoint::ping}, {"kill", gr00t::Endpoint::kill}, {"reset", gr00t::Endpoint::reset},
+           {"get_modality_config", gr00t::Endpoint::get_modality_config}}) {
+    const std::string m = call_of(name);
+    EXPECT_EQ(gr00t::parse_call(m).endpoint, ep) << name;
+  }
+  mp::Writer empty;
+  empty.map(0);
+  const std::string e = empty.take();
+  EXPECT_EQ(gr00t::parse_call(e).endpoint, gr00t::Endpoint::get_action);  // upstream's default
+  const std::string bad = call_of("explode");
+  try {
+    gr00t::parse_call(bad);
+    FAIL();
+  } catch (const HttpError& ex) {
+    EXPECT_EQ(ex.code(), "unknown_endpoint");
+    EXPECT_NE(std::string(ex.what()).find("Unknown endpoint: explode"), std::string::npos);
+  }
+}
+
+TEST(Gr00tProtocol, Refusals) {
+  EXPECT_EQ(code_of("\xc1").substr(0, 11), "bad_msgpack");
+  EXPECT_EQ(code_of("\x93\x01\x02\x03").substr(0, 11), "bad_msgpack");  // an array, not a map
+  Obs o;
+  o.camera = "top";
+  EXPECT_NE(code_of(request(o)).find("unknown_camera: observation.video.top"), std::string::npos);
+  o = Obs();
+  o.group = "joints";
+  EXPECT_NE(code_of(request(o)).find("unknown_field: observation.state.joints"), std::string::npos);
+  o = Obs();
+  o.state_dim = 2;
+  EXPECT_NE(code_of(request(o)).find("invalid_state"), std::string::npos);
+  o = Obs();
+  o.video_dtype = NpType::f32;
+  EXPECT_NE(code_of(request(o)).find("invalid_field: observation.video.front"), std::string::npos);
+  // An object (pickled) array is refused by the npy reader, never unpickled.
+  mp::Writer w;
+  w.map(1);
+  w.str("data");
+  w.map(1);
+  w.str("observation");
+  w.map(1);
+  w.str("video.front");
+  std::string npy = write_npy(NpType::u8, {1}, std::string(1, '\0'));
+  const auto at = npy.find("|u1");
+  npy.replace(at, 3, "|O ");
+  gr00t::write_ndarray(w, npy);
+  EXPECT_NE(code_of(w.take()).find("invalid_field: observation.video.front"), std::string::npos);
+  // A plain list where an array belongs.
+  mp::Writer l;
+  l.map(1);
+  l.str("data");
+  l.map(1);
+  l.str("observation");
+  l.map(1);
+  l.str("state.state");
+  l.array(1);
+  l.integer(1);
+  EXPECT_NE(code_of(l.take()).find("expected a numpy array"), std::string::npos);
+  // No observation at all.
+  mp::Writer n;
+  n.map(1);
+  n.str("endpoint");
+  n.str("get_action");
+  EXPECT_NE(code_of(n.take()).find("missing_field"), std::string::npos);
+}
+
+TEST(Gr00tProtocol, Replies) {
+  const mp::Value ping = mp::parse(gr00t::ping_reply());
+  const std::string ping_bytes = gr00t::ping_reply();
+  const mp::Value p = mp::parse(ping_bytes);
+  EXPECT_EQ(p.find("status")->bytes, "ok");
+  EXPECT_EQ(p.find("message")->bytes, "Server is running");
+  const std::string reset = gr00t::reset_reply();
+  EXPECT_TRUE(mp::parse(reset).is_map());
+  EXPECT_TRUE(mp::parse(reset).entries.empty());
+  const std::string kill = gr00t::kill_reply();
+  EXPECT_TRUE(mp::parse(kill).is_nil());
+  const std::string err = gr00t::error_reply(401, "unauthorized", "no key");
+  EXPECT_EQ(mp::parse(err).find("error")->bytes.substr(0, 13), "Unauthorized:");
+
+  const std::string cfg = gr00t::modality_config_reply(spec(), 3);
+  const mp::Value c = mp::parse(cfg);
+  const mp::Value* video = c.find("video")->find("as_json");
+  EXPECT_EQ(video->find("modality_keys")->items.at(0).bytes, "front");
+  EXPECT_EQ(video->find("modality_keys")->items.at(1).bytes, "wrist");
+  EXPECT_EQ(c.find("action")->find("as_json")->find("delta_indices")->items.size(), 4u);
+  EXPECT_EQ(c.find("state")->find("as_json")->find("modality_keys")->items.at(0).bytes, "state");
+  EXPECT_TRUE(c.find("language")->find("__ModalityConfig_class__")->boolean);
+
+  std::vector<float> actions(2 * 4 * 3);
+  for (std::size_t i = 0; i < actions.size(); ++i) actions[i] = float(i);
+  const std::string reply = gr00t::action_reply("action.action", 2, 4, 3, actions, Json::array({Json::object(), Json::object()}));
+  const mp::Value r = mp::parse(reply);
+  ASSERT_TRUE(r.is_array());
+  ASSERT_EQ(r.items.size(), 2u);
+  const NdArray a = parse_npy(r.items[0].find("action.action")->find("as_npy")->bytes);
+  EXPECT_EQ(a.dtype, NpType::f32);
+  EXPECT_EQ(a.shape, (std::vector<int64_t>{2, 4, 3}));
+  EXPECT_EQ(to_float32(a), actions);
+  EXPECT_TRUE(r.items[1].find("tether")->is_array());
+}
