@@ -331,6 +331,10 @@ def load_checkpoint(fam: Family, ckpt: Path, tiny: Tiny | None):
         if not torch.equal(current[key], value.to(current[key].dtype)):
             raise RuntimeError(f"{key} differs after loading {ckpt}")
     pre, post = make_pre_post_processors(cfg, pretrained_path=str(ckpt))
+    if cfg.dtype == "bfloat16":
+        # upstream built the model in its bf16 layout (embedding scale and RoPE frequencies computed in bf16 too);
+        # the float32 reference is that model cast to float32, as bench/lerobot_reference.py runs it
+        policy = policy.to(torch.float32)
     policy.eval()
     return cfg, policy, pre, post
 
@@ -535,6 +539,22 @@ PI0_CASES = {
         file_dtype=torch.bfloat16,
         instructions=[INSTR_SHORT, INSTR_LONG],
     ),
+    "cam1_config_bf16": dict(
+        COMMON,
+        desc=(
+            "1 camera (96x128 PNG), config dtype bfloat16 as the released checkpoints have it: upstream builds the "
+            "bf16 layout (vision tower, projector, norms and projections float32, the rest bfloat16, the embedding "
+            "scale and RoPE frequencies rounded to bfloat16) and the reference is that model cast to float32; "
+            "state 6 / action 5, stats in the family's default normalisation"
+        ),
+        seed=6100,
+        cameras=CAM1,
+        state_dim=6,
+        action_dim=5,
+        stats=True,
+        dtype="bfloat16",
+        instructions=[INSTR_SHORT, INSTR_LONG],
+    ),
     "variant_dims": dict(
         COMMON,
         desc=(
@@ -621,6 +641,22 @@ PI05_CASES = {
         action_dim=4,
         stats=True,
         file_dtype=torch.bfloat16,
+        instructions=[INSTR_SHORT, INSTR_LONG],
+    ),
+    "cam1_config_bf16": dict(
+        COMMON,
+        desc=(
+            "1 camera (96x128 PNG), config dtype bfloat16 as the released checkpoints have it: upstream builds the "
+            "bf16 layout (vision tower, projector, norms and projections float32, the rest bfloat16, the embedding "
+            "scale and RoPE frequencies rounded to bfloat16) and the reference is that model cast to float32; "
+            "state 6 / action 5, stats in the family's default normalisation"
+        ),
+        seed=6200,
+        cameras=CAM1,
+        state_dim=6,
+        action_dim=5,
+        stats=True,
+        dtype="bfloat16",
         instructions=[INSTR_SHORT, INSTR_LONG],
     ),
     "variant_dims": dict(
