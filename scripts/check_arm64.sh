@@ -32,10 +32,11 @@ host_packages=(
 # different contents) and libonig-dev (not Multi-Arch: same, so dpkg allows only one architecture of it).
 arm64_packages=(
   libdnnl2 libonig5 libicu-dev libspng-dev libturbojpeg0-dev libboost1.81-dev
-  libcurl4-openssl-dev libssl-dev libgtest-dev libgmock-dev
+  libcurl4-openssl-dev libssl-dev libgtest-dev libgmock-dev libzmq3-dev cppzmq-dev
 )
-# The -dev packages unpacked into $sysroot: "dev-package runtime-package library-name".
-sysroot_packages=("libdnnl-dev libdnnl2 libdnnl" "libonig-dev libonig5 libonig")
+# The -dev packages unpacked into $sysroot: "dev-package runtime-package library-name". libmsgpuck-dev is not
+# Multi-Arch either and has no runtime package (a static library): "-" takes the version of the installed amd64 twin.
+sysroot_packages=("libdnnl-dev libdnnl2 libdnnl" "libonig-dev libonig5 libonig" "libmsgpuck-dev - libmsgpuck")
 
 need_update=0
 if ! dpkg --print-foreign-architectures | grep -qx arm64; then
@@ -70,24 +71,29 @@ fi
 # unpacked from their .debs at the version of the installed library, which the lib*.so links there point at. The
 # arm64 preset puts $sysroot/usr on CMAKE_PREFIX_PATH, so find_package and pkg-config look there first. The .pc
 # files name /usr; they are rewritten relative to their own folder. Redone whenever a library's version changes.
+package_version() {  # dev-package runtime-package: the version to unpack
+  if [ "$2" = "-" ]; then dpkg-query -W -f='${Version}' "$1"; else dpkg-query -W -f='${Version}' "$2:arm64"; fi
+}
 want=""
 for entry in "${sysroot_packages[@]}"; do
   read -r dev lib _ <<<"$entry"
-  want+="$dev=$(dpkg-query -W -f='${Version}' "$lib:arm64") "
+  want+="$dev=$(package_version "$dev" "$lib") "
 done
 stamp="$sysroot/.unpacked"
 if [ "$(cat "$stamp" 2>/dev/null)" != "$want" ]; then
   rm -rf "$sysroot" && mkdir -p "$sysroot/debs" || fail "cannot create $sysroot"
   for entry in "${sysroot_packages[@]}"; do
     read -r dev lib name <<<"$entry"
-    version=$(dpkg-query -W -f='${Version}' "$lib:arm64")
+    version=$(package_version "$dev" "$lib")
     echo "check_arm64: unpacking $dev:arm64 $version into $sysroot"
     (cd "$sysroot/debs" && apt-get download -q "$dev:arm64=$version" 2>&1 | grep -v '^W: Download is performed unsandboxed') ||
       true
     deb=$(ls "$sysroot"/debs/"$dev"_*_arm64.deb 2>/dev/null | head -1)
     [ -n "$deb" ] || fail "apt-get download $dev:arm64=$version failed"
     dpkg-deb -x "$deb" "$sysroot" || fail "dpkg-deb -x $deb failed"
-    for f in /usr/lib/aarch64-linux-gnu/"$name".so.*; do ln -sf "$f" "$sysroot/usr/lib/aarch64-linux-gnu/"; done
+    for f in /usr/lib/aarch64-linux-gnu/"$name".so.*; do
+      [ -e "$f" ] && ln -sf "$f" "$sysroot/usr/lib/aarch64-linux-gnu/"
+    done
   done
   for pc in "$sysroot"/usr/lib/aarch64-linux-gnu/pkgconfig/*.pc; do
     [ -f "$pc" ] || continue
