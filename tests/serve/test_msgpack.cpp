@@ -1,3 +1,4 @@
+// The bounded msgpack reader and the writer of the binary transports.
 #include "serve/msgpack.h"
 
 #include <gtest/gtest.h>

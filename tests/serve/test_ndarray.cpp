@@ -1,3 +1,4 @@
+// numpy dtypes, float32 conversion and the .npy reader/writer of the binary transports.
 #include "serve/ndarray.h"
 
 #include <gtest/gtest.h>
