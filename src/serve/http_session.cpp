@@ -106,9 +106,10 @@ net::awaitable<void> HttpSessions::session(tcp::socket socket) {
         const bool v2 = is_kserve_path(partial.target());
         metrics_.count_request(v2 ? kserve_endpoint_label(partial.target()) : endpoint_label(partial.target()), 413,
                                v2 ? "kserve" : "http");
-        co_await write_and_close(stream, v2 ? kserve_error_response(partial, 413, why, rid)
-                                            : error_response(partial, 413, "body_too_large", why, rid),
-                                 opts_);
+        // A named local: GCC 12 can destroy temporaries of a co_await operand twice.
+        HttpResponse res = v2 ? kserve_error_response(partial, 413, why, rid)
+                              : error_response(partial, 413, "body_too_large", why, rid);
+        co_await write_and_close(stream, std::move(res), opts_);
       } else if (ec == http::error::header_limit) {
         metrics_.count_request("other", 431);
         co_await write_and_close(stream, error_response(partial, 431, "header_too_large",
