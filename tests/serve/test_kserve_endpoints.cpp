@@ -95,7 +95,7 @@ std::string v2_error(const HttpReply& r) { return Json::parse(r.body).at("error"
 
 }  // namespace
 
-TEST(KServeEndpoints, HealthAndMetadata) {
+TEST(ServerKServeEndpoints, HealthAndMetadata) {
   ServerOptions o;
   o.model_name = "demo";
   V2Server s(o);
@@ -125,12 +125,12 @@ TEST(KServeEndpoints, HealthAndMetadata) {
   EXPECT_EQ(http_get(s.port(), "/v2/models/demo/infer").status, 405);
 }
 
-TEST(KServeEndpoints, DefaultNameIsTheCheckpointDirectory) {
+TEST(ServerKServeEndpoints, DefaultNameIsTheCheckpointDirectory) {
   V2Server s;
   EXPECT_EQ(http_get(s.port(), "/v2/models/fake-dir").status, 200);
 }
 
-TEST(KServeEndpoints, InferJsonAndABatchOfTwo) {
+TEST(ServerKServeEndpoints, InferJsonAndABatchOfTwo) {
   ServerOptions o;
   o.model_name = "demo";
   o.batch.batch_timeout_ms = 200;  // the two items reach the batcher together
@@ -158,7 +158,7 @@ TEST(KServeEndpoints, InferJsonAndABatchOfTwo) {
       << metrics;
 }
 
-TEST(KServeEndpoints, InferBinaryOutputs) {
+TEST(ServerKServeEndpoints, InferBinaryOutputs) {
   ServerOptions o;
   o.model_name = "demo";
   V2Server s(o);
@@ -177,7 +177,7 @@ TEST(KServeEndpoints, InferBinaryOutputs) {
   EXPECT_EQ(f[5], 22.0f);
 }
 
-TEST(KServeEndpoints, ErrorsInTheProtocolsForm) {
+TEST(ServerKServeEndpoints, ErrorsInTheProtocolsForm) {
   ServerOptions o;
   o.model_name = "demo";
   o.api_key = "s3cret";

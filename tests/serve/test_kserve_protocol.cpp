@@ -68,7 +68,7 @@ Json binary_tensor(const std::string& name, const std::string& datatype, std::ve
 
 }  // namespace
 
-TEST(KServeProtocol, DecodesJsonTensors) {
+TEST(ServerKServeProtocol, DecodesJsonTensors) {
   Json j = one_item();
   j["id"] = "req-7";
   j["inputs"].push_back(tensor("seed", "INT64", {1}, {42}));
@@ -92,7 +92,7 @@ TEST(KServeProtocol, DecodesJsonTensors) {
   EXPECT_FALSE(r.outputs[0].binary);
 }
 
-TEST(KServeProtocol, NestedDataAndFullCameraKeys) {
+TEST(ServerKServeProtocol, NestedDataAndFullCameraKeys) {
   Json j = one_item();
   j["inputs"][1]["data"] = {{1.0, 2.0, 3.0}};
   j["inputs"][2] = tensor("image.observation.images.wrist", "UINT8", {1, 1, 2, 3}, {{{{1, 2, 3}, {4, 5, 6}}}});
@@ -101,7 +101,7 @@ TEST(KServeProtocol, NestedDataAndFullCameraKeys) {
   EXPECT_EQ(r.items[0].observation.images.count("observation.images.wrist"), 1u);
 }
 
-TEST(KServeProtocol, DecodesBinaryTensorsAndSplitsTheBatch) {
+TEST(ServerKServeProtocol, DecodesBinaryTensorsAndSplitsTheBatch) {
   const std::string instr = bytes_element("pick") + bytes_element("place");
   const std::vector<float> state = {1, 2, 3, 4, 5, 6};
   const std::vector<uint8_t> pixels = {1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12};  // 2 items of 1x2
@@ -130,7 +130,7 @@ TEST(KServeProtocol, DecodesBinaryTensorsAndSplitsTheBatch) {
   EXPECT_FALSE(r.outputs[1].binary);
 }
 
-TEST(KServeProtocol, RefusesWhatTheModelDoesNotTake) {
+TEST(ServerKServeProtocol, RefusesWhatTheModelDoesNotTake) {
   Json j = one_item();
   j["inputs"].push_back(tensor("temperature", "FP32", {1}, {1.0}));
   expect_refused(j, "unknown_field", "'temperature'");
@@ -188,7 +188,7 @@ TEST(KServeProtocol, RefusesWhatTheModelDoesNotTake) {
   expect_refused(j, "invalid_field", "shared memory");
 }
 
-TEST(KServeProtocol, RefusesBrokenJsonAndHeaderLengths) {
+TEST(ServerKServeProtocol, RefusesBrokenJsonAndHeaderLengths) {
   try {
     decode_infer_request("{\"inputs\": [", "", spec());
     FAIL();
@@ -211,7 +211,7 @@ TEST(KServeProtocol, RefusesBrokenJsonAndHeaderLengths) {
   expect_refused(j, "invalid_field", "no Inference-Header-Content-Length");
 }
 
-TEST(KServeProtocol, RefusesTruncatedAndLeftoverBinaryData) {
+TEST(ServerKServeProtocol, RefusesTruncatedAndLeftoverBinaryData) {
   Json j = one_item();
   j["inputs"][1] = binary_tensor("state", "FP32", {1, 3}, 12);
   const std::vector<float> state = {1, 2, 3};
@@ -233,7 +233,7 @@ TEST(KServeProtocol, RefusesTruncatedAndLeftoverBinaryData) {
   expect_refused(j, "invalid_field", "UTF-8", bad, true);
 }
 
-TEST(KServeProtocol, NamesTheItemThatFailsItsCheck) {
+TEST(ServerKServeProtocol, NamesTheItemThatFailsItsCheck) {
   const Json j = {{"inputs",
                    {tensor("instruction", "BYTES", {2}, Json::array({"a", "b"})),
                     tensor("state", "FP32", {2, 3}, {1.0, 2.0, 3.0, 4.0, 5.0, 1e39}),
@@ -241,7 +241,7 @@ TEST(KServeProtocol, NamesTheItemThatFailsItsCheck) {
   expect_refused(j, "invalid_state", "item 1: state[2]");
 }
 
-TEST(KServeProtocol, RefusesHugeShapesBeforeAllocating) {
+TEST(ServerKServeProtocol, RefusesHugeShapesBeforeAllocating) {
   Json j = one_item();
   j["inputs"][2]["shape"] = {1, 1 << 20, 1 << 20, 3};
   expect_refused(j, "invalid_field", "pixel limit");
@@ -253,7 +253,7 @@ TEST(KServeProtocol, RefusesHugeShapesBeforeAllocating) {
   expect_refused(j, "invalid_field", "at most 1024");
 }
 
-TEST(KServeProtocol, EncodesJsonAndBinaryOutputs) {
+TEST(ServerKServeProtocol, EncodesJsonAndBinaryOutputs) {
   InferRequest req;
   req.id = "x1";
   req.outputs = {{"actions", false}, {"action_source", false}};
@@ -287,7 +287,7 @@ TEST(KServeProtocol, EncodesJsonAndBinaryOutputs) {
   EXPECT_THROW(encode_infer_response("demo", req, items), HttpError);
 }
 
-TEST(KServeProtocol, MetadataNamesEveryTensor) {
+TEST(ServerKServeProtocol, MetadataNamesEveryTensor) {
   const Json m = model_metadata("demo", spec(), 2);
   EXPECT_EQ(m["name"], "demo");
   EXPECT_EQ(m["versions"], Json({"1"}));
