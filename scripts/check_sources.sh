@@ -16,5 +16,5 @@ if grep -rn --include='*.cpp' --include='*.h' -E '#include "backend/cpu/(kernels
   echo "src/models includes CPU kernels directly: call the backend interface instead"
   status=1
 fi
-python3 scripts/check_doc_links.py README.md docs/*.md || status=1
+python3 scripts/check_doc_links.py README.md docs/*.md docs/*/*.md || status=1
 exit $status

@@ -96,6 +96,8 @@ Verb add_go(CLI::App& app) {
             }
             ServeFlags flags = args->flags;
             flags.precision = choice.precision;
+            // KServe's model name: the registry id, not the export directory's name.
+            if (flags.options.model_name.empty()) flags.options.model_name = e.id;
             const std::string dir = cached_export(e, *src, flags.precision);
             std::fprintf(stderr, "tether go: %s -> %s (%s)\n", e.id.c_str(), dir.c_str(), flags.precision.c_str());
             return run_server(dir, flags);

@@ -56,6 +56,8 @@ void add_serve_flags(CLI::App* sub, ServeFlags& f) {
       ->capture_default_str()->check(CLI::Range(1, 3600000));
   sub->add_option("--shutdown-timeout-ms", o.shutdown_timeout_ms, "In-flight requests get this long after SIGTERM")
       ->capture_default_str()->check(CLI::Range(0, 3600000));
+  sub->add_option("--model-name", o.model_name,
+                  "Name of the model on KServe's /v2/models/{name} (default: the checkpoint directory's name)");
   sub->add_option("--threads", o.threads, "I/O threads (inference has its own)")->capture_default_str()
       ->check(CLI::Range(1, 256));
   add_precision_flag(sub, f.precision);
@@ -197,6 +199,7 @@ int run_server(const std::string& checkpoint_dir, const ServeFlags& flags) {
   serve::ServerOptions options = flags.options;
   options.api_key = read_api_key(flags);
   options.wedges = wedge_options(flags, checkpoint_dir);
+  if (options.model_name.empty()) options.model_name = serve::checkpoint_name(checkpoint_dir);
   const models::LoadOptions load = load_options(flags.precision);
   serve::Server server(options, [checkpoint_dir, load] { return serve::load_policy_engine(checkpoint_dir, load); });
   const uint16_t port = server.start();

@@ -110,7 +110,7 @@ net::awaitable<ActResponse> ActPipeline::run(const ActInput& input, const Reques
   } catch (...) {
     res = error_response(500, "internal_error", "internal error");
   }
-  metrics_.count_request("/act", res.status, ctx.transport);
+  metrics_.count_request(ctx.endpoint, res.status, ctx.transport);
   co_return res;
 }
 

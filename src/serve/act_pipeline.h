@@ -33,6 +33,8 @@ struct RequestContext {
   bool from_fallback = false;
   // The way in, as metrics and traces name it: http, kserve, openpi, gr00t or zmq.
   std::string transport = "http";
+  // The endpoint label tether_requests_total counts the answer under (KServe: "/v2/models/{name}/infer").
+  std::string endpoint = "/act";
 };
 
 // A request as a transport hands it over. Decoding waits until auth and readiness have passed (the model's cameras
@@ -61,7 +63,7 @@ class ActPipeline {
   ActPipeline(const ActPipeline&) = delete;
   ActPipeline& operator=(const ActPipeline&) = delete;
 
-  // Runs one request to its answer; never throws. Counts it in tether_requests_total{transport, endpoint="/act"}.
+  // Runs one request to its answer; never throws. Counts it in tether_requests_total{transport, endpoint} (ctx's).
   // `input` and `ctx` must outlive the awaitable (await it at once). Awaits the batcher and the fallback without
   // blocking the calling executor's thread.
   boost::asio::awaitable<ActResponse> run(const ActInput& input, const RequestContext& ctx);

@@ -8,6 +8,12 @@
 
 namespace tether::serve {
 
+std::string checkpoint_name(const std::string& checkpoint_dir) {
+  const auto path = std::filesystem::path(checkpoint_dir).lexically_normal();
+  const std::string name = path.filename().string();
+  return name.empty() ? path.parent_path().filename().string() : name;
+}
+
 Engine load_policy_engine(const std::string& checkpoint_dir, const models::LoadOptions& options) {
   std::shared_ptr<policy::Policy> p = policy::Policy::load(checkpoint_dir, options);
   Engine e;
@@ -18,8 +24,7 @@ Engine load_policy_engine(const std::string& checkpoint_dir, const models::LoadO
   e.precision = cpu::precision_name(p->spec().precision);
   e.compute = cpu::compute_mode(p->spec().precision);
   e.model_hash = models::weights_hash(checkpoint_dir, p->weight_files());
-  e.model_name = std::filesystem::path(checkpoint_dir).lexically_normal().filename().string();
-  if (e.model_name.empty()) e.model_name = std::filesystem::path(checkpoint_dir).lexically_normal().parent_path().filename().string();
+  e.model_name = checkpoint_name(checkpoint_dir);
   const std::string state_key = p->spec().state_key;
   e.normalize_state = [p, state_key](const std::vector<float>& state) {
     std::vector<float> out = state;

@@ -25,6 +25,9 @@ struct Engine {
   std::string compute = "fp32";  // cpu::compute_mode: what the linear layers really ran in
 };
 
+// The name a checkpoint directory is known by: its last path component ("models/demo/smolvla-demo/" -> "smolvla-demo").
+std::string checkpoint_name(const std::string& checkpoint_dir);
+
 // Loads the checkpoint directory with Policy::load and hashes its weights (models::weights_hash).
 Engine load_policy_engine(const std::string& checkpoint_dir, const models::LoadOptions& options = {});
 

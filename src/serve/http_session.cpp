@@ -7,6 +7,8 @@
 #include <chrono>
 #include <cstdio>
 
+#include "serve/kserve_endpoints.h"
+
 namespace tether::serve {
 
 namespace net = boost::asio;
@@ -99,12 +101,15 @@ net::awaitable<void> HttpSessions::session(tcp::socket socket) {
       if (partial.version() == 0) partial.version(11);
       const std::string rid = request_id_of(partial);
       if (ec == http::error::body_limit) {
-        metrics_.count_request(endpoint_label(partial.target()), 413);
-        co_await write_and_close(stream, error_response(partial, 413, "body_too_large",
-                                                "the body exceeds " + std::to_string(opts_.max_body_bytes) +
-                                                    " bytes (--max-body-bytes)",
-                                                rid),
-                                 opts_);
+        const std::string why = "the body exceeds " + std::to_string(opts_.max_body_bytes) + " bytes (--max-body-bytes)";
+        // A /v2 client gets the protocol's error form, counted under its transport.
+        const bool v2 = is_kserve_path(partial.target());
+        metrics_.count_request(v2 ? kserve_endpoint_label(partial.target()) : endpoint_label(partial.target()), 413,
+                               v2 ? "kserve" : "http");
+        // A named local: GCC 12 can destroy temporaries of a co_await operand twice.
+        HttpResponse res = v2 ? kserve_error_response(partial, 413, why, rid)
+                              : error_response(partial, 413, "body_too_large", why, rid);
+        co_await write_and_close(stream, std::move(res), opts_);
       } else if (ec == http::error::header_limit) {
         metrics_.count_request("other", 431);
         co_await write_and_close(stream, error_response(partial, 431, "header_too_large",

@@ -10,7 +10,7 @@ namespace tether::serve {
 namespace http = boost::beast::http;
 
 Router::Router(const ServerOptions& options, ModelHost& host, Metrics& metrics, ActPipeline& pipeline)
-    : opts_(options), host_(host), metrics_(metrics), pipeline_(pipeline) {}
+    : opts_(options), host_(host), metrics_(metrics), pipeline_(pipeline), kserve_(options, host, metrics, pipeline) {}
 
 Json Router::health_json(HealthState s) const {
   const bool ok = s == HealthState::ready;
@@ -106,6 +106,7 @@ boost::asio::awaitable<HttpResponse> Router::handle(const HttpRequest& req,
     const ActResponse act = co_await pipeline_.run(req.body(), ctx);
     co_return act_response(req, act, request_id);
   }
+  if (is_kserve_path(path)) co_return co_await kserve_.handle(req, request_id, received);
   int status = 500, retry_after_s = 1;
   std::string code = "internal_error", message;
   try {

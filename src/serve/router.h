@@ -7,6 +7,7 @@
 
 #include "serve/act_pipeline.h"
 #include "serve/http_message.h"
+#include "serve/kserve_endpoints.h"
 #include "serve/metrics.h"
 #include "serve/model_host.h"
 #include "serve/server_options.h"
@@ -31,6 +32,7 @@ class Router {
   ModelHost& host_;
   Metrics& metrics_;
   ActPipeline& pipeline_;
+  KServeEndpoints kserve_;  // /v2: the Open Inference Protocol
 };
 
 }  // namespace tether::serve

@@ -24,6 +24,7 @@ struct ServerOptions {
   int shutdown_timeout_ms = 10000;  // in-flight requests get this long after SIGTERM/SIGINT
   int threads = 2;                  // I/O threads (inference runs on the batcher's worker)
   runtime::WedgeOptions wedges;     // safety wedges, episodes and trace recording (all off by default)
+  std::string model_name;           // KServe v2's model name; empty: the checkpoint directory's (Engine::model_name)
 
   // Transports beside HTTP (serve/transport.h), on `host`; absent: off, 0: the OS picks a free port.
   std::optional<uint16_t> openpi_port;  // openpi's WebSocket policy server protocol
