@@ -125,6 +125,7 @@ void add_serve_flags(CLI::App* sub, ServeFlags& f) {
       ->group(wedges)->capture_default_str()->check(CLI::IsMember({"every_line", "interval", "never"}));
   sub->add_option("--max-episodes", w.max_episodes, "Episodes kept in memory (least recently used forgotten)")
       ->group(wedges)->capture_default_str()->check(CLI::Range(std::size_t(1), std::size_t(1) << 24));
+  add_openpi_flags(sub, o);
 }
 
 

@@ -1,11 +1,13 @@
 // The transports a server runs besides HTTP, chosen by the options.
 #include "serve/transport.h"
 
+#include "serve/openpi_transport.h"
+
 namespace tether::serve {
 
 std::vector<std::unique_ptr<Transport>> make_transports(const TransportContext& ctx) {
   std::vector<std::unique_ptr<Transport>> transports;
-  (void)ctx;
+  if (ctx.options.openpi_port) transports.push_back(std::make_unique<OpenpiTransport>(ctx));
   return transports;
 }
 
