@@ -114,10 +114,10 @@ std::string presented_key(const HttpRequest& req) {
   return presented_api_key(req);
 }
 
-net::awaitable<void> reply_http(beast::tcp_stream& stream, const HttpRequest& req, http::status status,
-                                std::string body, const char* content_type, const ServerOptions& opts,
-                                int retry_after_s = 0) {
-  HttpResponse res{status, req.version() ? req.version() : 11};
+// Built outside any coroutine: GCC 12 mishandles some temporaries inside co_await expressions.
+HttpResponse plain_response(const HttpRequest& req, http::status status, std::string body, const char* content_type,
+                            int retry_after_s = 0) {
+  HttpResponse res{status, req.version() ? req.version() : 11u};
   res.set(http::field::server, "tether/" TETHER_VERSION);
   res.set(http::field::content_type, content_type);
   if (status == http::status::upgrade_required) res.set(http::field::upgrade, "websocket");
@@ -125,6 +125,10 @@ net::awaitable<void> reply_http(beast::tcp_stream& stream, const HttpRequest& re
   res.body() = std::move(body);
   res.keep_alive(false);
   res.prepare_payload();
+  return res;
+}
+
+net::awaitable<void> send_and_close(beast::tcp_stream& stream, const HttpResponse& res, const ServerOptions& opts) {
   beast::error_code ec;
   stream.expires_after(std::chrono::milliseconds(opts.write_timeout_ms));
   co_await http::async_write(stream, res, net::redirect_error(net::use_awaitable, ec));
@@ -148,12 +152,13 @@ net::awaitable<bool> write_frame(Ws& ws, std::string_view data, bool text, int t
 
 // openpi's failure shape: the reason as a text frame (WebsocketClientPolicy raises it), then a close frame.
 net::awaitable<void> fail_connection(Ws& ws, OpenpiConnection& conn, const std::string& text, websocket::close_code code,
-                                     std::string reason, const ServerOptions& opts) {
+                                     const std::string& reason, const ServerOptions& opts) {
   conn.closing = true;
   if (!co_await write_frame(ws, text, true, opts.write_timeout_ms)) co_return;
-  if (reason.size() > 123) reason.resize(123);  // a close reason's limit (RFC 6455 5.5)
+  // A close reason holds at most 123 bytes (RFC 6455 5.5).
+  const websocket::close_reason close(code, std::string_view(reason).substr(0, 123));
   beast::error_code ec;
-  co_await ws.async_close(websocket::close_reason(code, reason), net::redirect_error(net::use_awaitable, ec));
+  co_await ws.async_close(close, net::redirect_error(net::use_awaitable, ec));
 }
 
 Json metadata(const Shared& s) {
@@ -223,7 +228,8 @@ net::awaitable<void> websocket_session(std::shared_ptr<Shared> s, std::shared_pt
   co_await ws.async_accept(req, net::redirect_error(net::use_awaitable, ec));
   if (ec) co_return;
   Registration registered(*s, conn);
-  if (!co_await write_frame(ws, openpi::encode_json(metadata(*s)), false, opts.write_timeout_ms)) co_return;
+  const std::string meta = openpi::encode_json(metadata(*s));
+  if (!co_await write_frame(ws, meta, false, opts.write_timeout_ms)) co_return;
 
   const std::size_t limit = s->max_frame_bytes();
   const auto& spec = s->ctx.host.engine().spec;
@@ -258,8 +264,8 @@ net::awaitable<void> websocket_session(std::shared_ptr<Shared> s, std::shared_pt
     if (too_big) {
       InFlight counted(s->in_flight);
       const std::string why = "frame exceeds " + std::to_string(limit) + " bytes (--openpi-max-frame-bytes)";
-      co_await fail_connection(ws, *conn, "tether: 1009 frame_too_large: " + why, websocket::close_code::too_big, why,
-                               opts);
+      const std::string text = "tether: 1009 frame_too_large: " + why;
+      co_await fail_connection(ws, *conn, text, websocket::close_code::too_big, why, opts);
       co_return;
     }
     InFlight counted(s->in_flight);
@@ -269,11 +275,10 @@ net::awaitable<void> websocket_session(std::shared_ptr<Shared> s, std::shared_pt
     ctx.received = *received;
     ctx.transport = "openpi";
     if (!ws.got_binary()) {
-      co_await fail_connection(ws, *conn,
-                               "tether: 400 invalid_msgpack: expected a binary msgpack frame, got a text frame (request " +
-                                   ctx.request_id + ")",
-                               websocket::close_code::internal_error, "invalid_msgpack; reason in the previous frame",
-                               opts);
+      const std::string text =
+          "tether: 400 invalid_msgpack: expected a binary msgpack frame, got a text frame (request " + ctx.request_id + ")";
+      co_await fail_connection(ws, *conn, text, websocket::close_code::internal_error,
+                               "invalid_msgpack; reason in the previous frame", opts);
       co_return;
     }
     const auto data = frame.cdata();
@@ -289,14 +294,73 @@ net::awaitable<void> websocket_session(std::shared_ptr<Shared> s, std::shared_pt
       std::string code = "error";
       if (const auto e = answer.body.find("error"); e != answer.body.end() && e->is_object())
         code = e->value("code", code);
-      co_await fail_connection(ws, *conn, failure_text(answer, ctx.request_id), websocket::close_code::internal_error,
-                               code + "; reason in the previous frame", opts);
+      const std::string text = failure_text(answer, ctx.request_id);
+      const std::string reason = code + "; reason in the previous frame";
+      co_await fail_connection(ws, *conn, text, websocket::close_code::internal_error, reason, opts);
       co_return;
     }
     const std::string reply = openpi::encode_reply(answer.body, {infer_ms, prev_total_ms}, spec.stages);
     if (!co_await write_frame(ws, reply, false, opts.write_timeout_ms)) co_return;
     prev_total_ms = ms_between(wait_start, Clock::now());
   }
+}
+
+// What the upgrade request gets when it is not upgraded; nullopt: upgrade it.
+std::optional<HttpResponse> refusal(Shared& s, const HttpRequest& req, const std::string& key) {
+  const ServerOptions& opts = s.opts();
+  ModelHost& host = s.ctx.host;
+  Metrics& metrics = s.ctx.metrics;
+  const std::string_view target = req.target();
+  const std::string_view path = target.substr(0, target.find('?'));
+  if (path == "/healthz") {  // as openpi's server answers it, before any upgrade
+    if (host.serving()) return plain_response(req, http::status::ok, "OK\n", "text/plain");
+    return plain_response(req, http::status::service_unavailable, std::string(health_state_name(host.health())) + "\n",
+                          "text/plain", 1);
+  }
+  if (!websocket::is_upgrade(req)) {
+    metrics.count_request("upgrade", 426, "openpi");
+    return plain_response(req, http::status::upgrade_required,
+                          "this port speaks openpi's WebSocket policy protocol (openpi_client.websocket_client_policy);"
+                          " GET /healthz for its health\n",
+                          "text/plain");
+  }
+  try {
+    check_api_key(key, opts.api_key);
+  } catch (const HttpError& e) {
+    metrics.count_request("upgrade", e.status(), "openpi");
+    return plain_response(req, http::status(e.status()), error_json(e.code(), e.what()), "application/json");
+  }
+  if (s.draining.load()) {
+    metrics.count_request("upgrade", 503, "openpi");
+    return plain_response(req, http::status::service_unavailable,
+                          error_json("shutting_down", "the server is shutting down"), "application/json", 1);
+  }
+  if (!host.serving()) {
+    metrics.count_request("upgrade", 503, "openpi");
+    return plain_response(req, http::status::service_unavailable,
+                          error_json("not_ready", std::string("the model is not ready (") +
+                                                      health_state_name(host.health()) + ")"),
+                          "application/json", 1);
+  }
+  return std::nullopt;
+}
+
+// The refusal of an upgrade request that could not be read; nullopt: just close.
+std::optional<HttpResponse> unreadable(Shared& s, const HttpRequest& req, const beast::error_code& ec) {
+  if (ec == http::error::header_limit) {
+    s.ctx.metrics.count_request("upgrade", 431, "openpi");
+    return plain_response(req, http::status::request_header_fields_too_large,
+                          error_json("header_too_large", "the request header exceeds " +
+                                                             std::to_string(s.opts().max_header_bytes) +
+                                                             " bytes (--max-header-bytes)"),
+                          "application/json");
+  }
+  if (ec == http::error::body_limit) {
+    s.ctx.metrics.count_request("upgrade", 400, "openpi");
+    return plain_response(req, http::status::bad_request,
+                          error_json("bad_request", "a WebSocket upgrade request has no body"), "application/json");
+  }
+  return std::nullopt;
 }
 
 net::awaitable<void> session(std::shared_ptr<Shared> s, tcp::socket socket) {
@@ -310,61 +374,15 @@ net::awaitable<void> session(std::shared_ptr<Shared> s, tcp::socket socket) {
   stream.expires_after(std::chrono::milliseconds(opts.read_timeout_ms));
   co_await http::async_read(stream, buffer, parser, net::redirect_error(net::use_awaitable, ec));
   HttpRequest req = parser.release();
-  Metrics& metrics = s->ctx.metrics;
   if (ec) {
-    if (ec == http::error::header_limit) {
-      metrics.count_request("upgrade", 431, "openpi");
-      co_await reply_http(stream, req, http::status::request_header_fields_too_large,
-                          error_json("header_too_large", "the request header exceeds " +
-                                                             std::to_string(opts.max_header_bytes) +
-                                                             " bytes (--max-header-bytes)"),
-                          "application/json", opts);
-    } else if (ec == http::error::body_limit) {
-      metrics.count_request("upgrade", 400, "openpi");
-      co_await reply_http(stream, req, http::status::bad_request,
-                          error_json("bad_request", "a WebSocket upgrade request has no body"), "application/json",
-                          opts);
-    }
-    co_return;
-  }
-  const std::string_view target = req.target();
-  const std::string_view path = target.substr(0, target.find('?'));
-  ModelHost& host = s->ctx.host;
-  if (path == "/healthz") {  // as openpi's server answers it, before any upgrade
-    const bool ok = host.serving();
-    co_await reply_http(stream, req, ok ? http::status::ok : http::status::service_unavailable,
-                        ok ? "OK\n" : std::string(health_state_name(host.health())) + "\n", "text/plain", opts);
-    co_return;
-  }
-  if (!websocket::is_upgrade(req)) {
-    metrics.count_request("upgrade", 426, "openpi");
-    co_await reply_http(stream, req, http::status::upgrade_required,
-                        "this port speaks openpi's WebSocket policy protocol (openpi_client.websocket_client_policy);"
-                        " GET /healthz for its health\n",
-                        "text/plain", opts);
+    const std::optional<HttpResponse> res = unreadable(*s, req, ec);
+    if (res) co_await send_and_close(stream, *res, opts);
     co_return;
   }
   const std::string key = presented_key(req);
-  std::optional<HttpError> refused;
-  try {
-    check_api_key(key, opts.api_key);
-  } catch (const HttpError& e) {
-    refused = e;
-  }
-  if (refused) {
-    metrics.count_request("upgrade", refused->status(), "openpi");
-    co_await reply_http(stream, req, http::status(refused->status()), error_json(refused->code(), refused->what()),
-                        "application/json", opts);
-    co_return;
-  }
-  if (s->draining.load() || !host.serving()) {
-    metrics.count_request("upgrade", 503, "openpi");
-    const std::string why = s->draining.load() ? "the server is shutting down"
-                                               : std::string("the model is not ready (") +
-                                                     health_state_name(host.health()) + ")";
-    co_await reply_http(stream, req, http::status::service_unavailable,
-                        error_json(s->draining.load() ? "shutting_down" : "not_ready", why), "application/json", opts,
-                        1);
+  const std::optional<HttpResponse> res = refusal(*s, req, key);
+  if (res) {
+    co_await send_and_close(stream, *res, opts);
     co_return;
   }
   stream.expires_never();  // the WebSocket's own timeouts apply from here

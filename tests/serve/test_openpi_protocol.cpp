@@ -345,7 +345,8 @@ TEST(OpenpiReply, ActionsAsMsgpackNumpyAndOpenpiTimings) {
 
 TEST(OpenpiReply, JsonBecomesMsgpack) {
   const Json j = {{"a", nullptr}, {"b", true}, {"c", -3}, {"d", 2.5}, {"e", {1, "x"}}, {"f", {{"g", 1u}}}};
-  const mp::Value v = mp::parse(openpi::encode_json(j));
+  const std::string bytes = openpi::encode_json(j);  // the parsed values are views into it
+  const mp::Value v = mp::parse(bytes);
   EXPECT_TRUE(v.find("a")->is_nil());
   EXPECT_TRUE(v.find("b")->boolean);
   EXPECT_EQ(v.find("c")->integer, -3);
