@@ -3,6 +3,7 @@
 #include <gtest/gtest.h>
 
 #include <cstring>
+#include <fstream>
 #include <functional>
 
 #include "serve/http_error.h"
@@ -353,4 +354,25 @@ TEST(OpenpiReply, JsonBecomesMsgpack) {
   EXPECT_DOUBLE_EQ(v.find("d")->number, 2.5);
   EXPECT_EQ(v.find("e")->items[1].bytes, "x");
   EXPECT_EQ(v.find("f")->find("g")->integer, 1);
+}
+
+// The fuzz seeds (fuzz/seeds/openpi_request/) are valid frames, so the fuzzer starts from accepted inputs.
+TEST(OpenpiDecode, FuzzSeedsAreAccepted) {
+  const auto s = spec({"observation.images.front", "observation.images.wrist"}, 3);
+  openpi::Layouts file{"fuzz.json", {openpi::parse_layout_json(
+                                        R"({"images": {"cam/a": "front", "cam/b": "wrist"}, "state": ["s1", "s2"],
+                                            "prompt": "task", "default_prompt": "go", "ignore": ["x"]})",
+                                        "fuzz.json")}};
+  const std::string dir = std::string(TETHER_SOURCE_DIR) + "/fuzz/seeds/openpi_request/";
+  int n = 0;
+  for (const char* name : {"libero", "droid_scalar_gripper", "aloha_nested_chw", "float_image", "file_layout",
+                           "str_keys"}) {
+    std::ifstream in(dir + name + ".msgpack", std::ios::binary);
+    const std::string bytes((std::istreambuf_iterator<char>(in)), {});
+    ASSERT_FALSE(bytes.empty()) << name;
+    const auto& l = (bytes[0] & 1) ? file : layouts("auto");
+    EXPECT_NO_THROW(openpi::decode_request(std::string_view(bytes).substr(1), l, s)) << name;
+    ++n;
+  }
+  EXPECT_EQ(n, 6);
 }
