@@ -182,6 +182,24 @@ def metrics_of_with_key(proc: ServeProcess, key: str) -> Dict:
     return parse_metrics(body.decode())
 
 
+def test_upgrades_wait_for_the_model():
+    # The warm-up pass takes the injected latency: the model is "warming" for 3 s.
+    proc = ServeProcess(["--openpi-port", "0", "--inject-latency-ms", "3000"], wait_ready=False)
+    try:
+        status, _, body = request(openpi_port(proc), "GET", "/healthz")
+        assert status == 503 and body.strip() in (b"loading", b"warming")
+        with pytest.raises(websockets.exceptions.InvalidStatus) as refused:
+            client(proc)
+        assert refused.value.response.status_code == 503
+        assert refused.value.response.headers["Retry-After"] == "1"
+        assert json.loads(refused.value.response.body)["error"]["code"] == "not_ready"
+        proc.wait_ready(60)
+        assert request(openpi_port(proc), "GET", "/healthz")[0] == 200
+        assert client(proc).get_server_metadata()["action_horizon"] == CHUNK
+    finally:
+        assert proc.stop() == 0, proc.stderr_tail()
+
+
 # -- layouts ---------------------------------------------------------------------------------------------------
 
 
