@@ -328,12 +328,14 @@ def closed_within(s: socket.socket, seconds: float) -> bool:
 
 
 def test_idle_connections_are_pinged_and_dropped_when_silent():
-    proc = ServeProcess(["--openpi-port", "0", "--openpi-idle-timeout-ms", "1000"])
+    # Each forward pass takes 2 s, twice the idle timeout: time spent answering is not idle time.
+    proc = ServeProcess(["--openpi-port", "0", "--openpi-idle-timeout-ms", "1000", "--inject-latency-ms", "2000"])
     try:
         silent = handshake(openpi_port(proc))
         live = client(proc)  # its websockets library answers the server's pings
         time.sleep(2.5)
         assert closed_within(silent, 5)
+        assert live.infer(libero_obs())["actions"].shape == (CHUNK, DIM)
         assert live.infer(libero_obs())["actions"].shape == (CHUNK, DIM)
     finally:
         assert proc.stop() == 0, proc.stderr_tail()

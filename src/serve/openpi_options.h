@@ -11,8 +11,8 @@ struct OpenpiOptions {
   // (docs/transports/openpi.md).
   std::string layout = "auto";
   std::size_t max_frame_bytes = 0;  // 0: --max-body-bytes; a larger frame closes its connection with 1009
-  // A connection from which nothing (not even a pong to the server's ping at half this) arrives for this long is
-  // closed; 0: never.
+  // A connection waiting for a frame from which nothing (not even a pong to the server's ping at half this) arrives
+  // for this long is closed; 0: never. Time spent answering it does not count.
   int idle_timeout_ms = 60000;
 };
 

@@ -288,7 +288,10 @@ net::awaitable<void> websocket_session(std::shared_ptr<Shared> s, std::shared_pt
     input.decode = [bytes, s](const models::ModelSpec& m) { return openpi::decode_request(bytes, s->layouts, m); };
     input.act_json = [](const ActRequest& r) { return act_request_json(r); };
     const auto t0 = Clock::now();
+    // The idle timer counts only while waiting for a frame: a long inference (the client waits) must not drop it.
+    ws.set_option(websocket::stream_base::timeout{websocket::stream_base::none(), websocket::stream_base::none(), false});
     const ActResponse answer = co_await s->ctx.pipeline.run(input, ctx);
+    ws.set_option(timeouts);  // re-armed by the next read
     const double infer_ms = ms_between(t0, Clock::now());
     if (!answer.ok()) {
       std::string code = "error";
