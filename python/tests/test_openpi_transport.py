@@ -9,6 +9,7 @@ import base64
 import errno
 import json
 import os
+import signal
 import socket
 import struct
 import subprocess
@@ -244,6 +245,7 @@ def test_mapping_file_and_fixed_layout(tmp_path):
 
 
 def test_request_errors_close_1011_and_name_the_key(server):
+    bystander = raw(server)  # open across every failure below
     ws = raw(server)
     ws.send(msgpack_numpy.packb(libero_obs(**{"observation/extra": 1})))
     expect_failure(ws, "unknown key 'observation/extra'")
@@ -260,8 +262,11 @@ def test_request_errors_close_1011_and_name_the_key(server):
         ws = raw(server)
         ws.send(frame)
         expect_failure(ws, mention)
-    # The server keeps serving.
+    # The server keeps serving, new connections and the one left open.
     assert client(server).infer(libero_obs())["actions"].shape == (CHUNK, DIM)
+    bystander.send(msgpack_numpy.packb(libero_obs()))
+    assert msgpack_numpy.unpackb(bystander.recv(timeout=20))["actions"].shape == (CHUNK, DIM)
+    bystander.close()
     m = metrics_of(server)
     assert metric(m, "tether_requests_total", transport="openpi", status="400") >= 4
 
@@ -415,13 +420,18 @@ def test_200_idle_connections_do_not_stop_service(server):
             s.close()
 
 
-def test_drain_closes_idle_connections_going_away():
-    proc = ServeProcess(["--openpi-port", "0"])
-    ws = raw(proc)
+def test_drain_answers_in_flight_requests_then_closes_going_away():
+    proc = ServeProcess(["--openpi-port", "0", "--inject-latency-ms", "1500"])
+    idle, busy = raw(proc), raw(proc)
+    busy.send(msgpack_numpy.packb(libero_obs()))
+    time.sleep(0.5)  # the request is in the model now
+    proc.proc.send_signal(signal.SIGTERM)
+    assert msgpack_numpy.unpackb(busy.recv(timeout=20))["actions"].shape == (CHUNK, DIM)
+    for ws in (idle, busy):
+        with pytest.raises(websockets.exceptions.ConnectionClosed) as closed:
+            ws.recv(timeout=10)
+        assert closed.value.rcvd is not None and closed.value.rcvd.code == 1001
     assert proc.stop() == 0, proc.stderr_tail()
-    with pytest.raises(websockets.exceptions.ConnectionClosed) as closed:
-        ws.recv(timeout=10)
-    assert closed.value.rcvd is not None and closed.value.rcvd.code == 1001
 
 
 # -- the safety wedges on this transport ------------------------------------------------------------------------
