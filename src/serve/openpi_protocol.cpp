@@ -218,6 +218,9 @@ struct Leaf {
 
 // An observation has a handful of keys; the cap keeps the key checks below cheap on hostile frames.
 constexpr std::size_t kMaxKeys = 256;
+// Pixels travel as binaries, so a frame needs few msgpack elements (keys, shapes, a state list); each parsed element
+// costs about a hundred bytes, so the default million would let one 1 MiB frame take 100 MiB.
+constexpr msgpack::Limits kFrameLimits{16, 1 << 14};
 
 // Nested maps that are not arrays become '/'-joined keys.
 void flatten(const msgpack::Value& map, const std::string& prefix, std::vector<Leaf>& out) {
@@ -410,7 +413,7 @@ std::vector<std::optional<std::string>> resolve_cameras(const Layout& layout, co
 ActRequest decode_request(std::string_view frame, const Layouts& layouts, const models::ModelSpec& spec) {
   msgpack::Value root;
   try {
-    root = msgpack::parse(frame);
+    root = msgpack::parse(frame, kFrameLimits);
   } catch (const msgpack::Error& e) {
     fail("invalid_msgpack", e.what());
   }

@@ -376,3 +376,12 @@ TEST(OpenpiDecode, FuzzSeedsAreAccepted) {
   }
   EXPECT_EQ(n, 6);
 }
+
+TEST(OpenpiDecode, AFrameOfManySmallElementsIsRefusedEarly) {
+  mp::Writer w;
+  w.map(1);
+  w.str("observation/state");
+  w.array(100000);
+  for (int i = 0; i < 100000; ++i) w.nil();
+  expect_error(w.take(), layouts("libero"), spec(), "invalid_msgpack", "array items");
+}
