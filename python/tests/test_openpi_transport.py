@@ -268,7 +268,7 @@ def test_request_errors_close_1011_and_name_the_key(server):
     assert msgpack_numpy.unpackb(bystander.recv(timeout=20))["actions"].shape == (CHUNK, DIM)
     bystander.close()
     m = metrics_of(server)
-    assert metric(m, "tether_requests_total", transport="openpi", status="400") >= 4
+    assert metric(m, "tether_requests_total", transport="openpi", status="400") >= 6  # the text frame included
 
 
 def test_oversized_frame_closes_1009():
@@ -279,7 +279,8 @@ def test_oversized_frame_closes_1009():
         assert msgpack_numpy.unpackb(ws.recv(timeout=20))["actions"].shape == (CHUNK, DIM)
         big = np.zeros((240, 320, 3), np.uint8)  # 230 kB
         ws.send(msgpack_numpy.packb(libero_obs(**{"observation/image": big})))
-        expect_failure(ws, "--openpi-max-frame-bytes", code=1009)
+        expect_failure(ws, "413 frame_too_large", code=1009)
+        assert metric(metrics_of(proc), "tether_requests_total", transport="openpi", status="413") == 1
         assert client(proc).infer(libero_obs())["actions"].shape == (CHUNK, DIM)
     finally:
         assert proc.stop() == 0, proc.stderr_tail()

@@ -264,7 +264,8 @@ net::awaitable<void> websocket_session(std::shared_ptr<Shared> s, std::shared_pt
     if (too_big) {
       InFlight counted(s->in_flight);
       const std::string why = "frame exceeds " + std::to_string(limit) + " bytes (--openpi-max-frame-bytes)";
-      const std::string text = "tether: 1009 frame_too_large: " + why;
+      const std::string text = "tether: 413 frame_too_large: " + why;
+      s->ctx.metrics.count_request("/act", 413, "openpi");
       co_await fail_connection(ws, *conn, text, websocket::close_code::too_big, why, opts);
       co_return;
     }
@@ -274,18 +275,15 @@ net::awaitable<void> websocket_session(std::shared_ptr<Shared> s, std::shared_pt
     ctx.api_key = api_key;
     ctx.received = *received;
     ctx.transport = "openpi";
-    if (!ws.got_binary()) {
-      const std::string text =
-          "tether: 400 invalid_msgpack: expected a binary msgpack frame, got a text frame (request " + ctx.request_id + ")";
-      co_await fail_connection(ws, *conn, text, websocket::close_code::internal_error,
-                               "invalid_msgpack; reason in the previous frame", opts);
-      co_return;
-    }
     const auto data = frame.cdata();
     const std::string_view bytes(static_cast<const char*>(data.data()), data.size());
     ActInput input;
     input.wire_bytes = bytes.size();
-    input.decode = [bytes, s](const models::ModelSpec& m) { return openpi::decode_request(bytes, s->layouts, m); };
+    // A text frame is refused inside the pipeline too, so it is counted and traced like any bad frame.
+    input.decode = [bytes, s, binary = ws.got_binary()](const models::ModelSpec& m) {
+      if (!binary) throw HttpError(400, "invalid_msgpack", "expected a binary msgpack frame, got a text frame");
+      return openpi::decode_request(bytes, s->layouts, m);
+    };
     input.act_json = [](const ActRequest& r) { return act_request_json(r); };
     const auto t0 = Clock::now();
     // The idle timer counts only while waiting for a frame: a long inference (the client waits) must not drop it.
