@@ -37,6 +37,7 @@ seeds_for() {
     fuzz_image_decode) echo "tests/fixtures/vision/images tests/fixtures/vision/bad" ;;
     fuzz_act_request) echo "fuzz/seeds/act_request" ;;
     fuzz_kserve_request) echo "fuzz/seeds/kserve_request" ;;
+    fuzz_openpi_request) echo "fuzz/seeds/openpi_request" ;;
   esac
 }
 

@@ -10,7 +10,7 @@ venv=.venv
 stamp_file="$venv/.tether-stamp"
 
 # What the environment depends on; a change to any of these rebuilds it.
-stamp="$( { "$python" -c 'import sys; print(sys.version)'; cat "$0" python/requirements-test.txt python/pyproject.toml; } \
+stamp="$( { "$python" -c 'import sys; print(sys.version)'; cat "$0" python/requirements-test.txt python/requirements-test-nodeps.txt python/pyproject.toml; } \
   | sha256sum | cut -d' ' -f1)"
 if [ -f "$stamp_file" ] && [ "$(cat "$stamp_file")" = "$stamp" ] && [ -x "$venv/bin/python" ]; then
   exit 0
@@ -33,6 +33,7 @@ if [ ! -x "$venv/bin/python" ]; then
   "$python" -m venv "$venv"
 fi
 "$venv/bin/python" -m pip install -q --disable-pip-version-check -r python/requirements-test.txt
+"$venv/bin/python" -m pip install -q --disable-pip-version-check --no-deps -r python/requirements-test-nodeps.txt
 # No build isolation: the pinned setuptools above builds the editable install, so nothing else is fetched.
 "$venv/bin/python" -m pip install -q --disable-pip-version-check --no-build-isolation --no-deps -e python/
 echo "$stamp" >"$stamp_file"

@@ -142,6 +142,7 @@ void add_serve_flags(CLI::App* sub, ServeFlags& f) {
   sub->add_option("--zmq-curve-secret-file", o.zmq_curve_secret_file,
                   "Z85 CURVE secret key: the --zmq-port is encrypted (clients need the public key it prints)")
       ->group(zmq_group);
+  add_openpi_flags(sub, o);
 }
 
 

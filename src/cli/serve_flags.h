@@ -26,6 +26,8 @@ struct ServeFlags {
 };
 
 void add_serve_flags(CLI::App* sub, ServeFlags& flags);
+// The --openpi-* flags (openpi_flags.cpp); add_serve_flags adds them.
+void add_openpi_flags(CLI::App* sub, serve::ServerOptions& options);
 // The embodiment file an export carries; `tether serve` on such a directory uses it unless a flag names another.
 inline constexpr const char* kExportEmbodimentFile = "embodiment.json";
 // Path of the preset models/embodiments/<name>.json after validating it (not_found listing the presets otherwise).

@@ -123,6 +123,7 @@ net::awaitable<ActResponse> ActPipeline::run(std::string_view body, const Reques
 // Every request that passed auth and readiness leaves one trace line, whatever its outcome.
 net::awaitable<ActResponse> ActPipeline::traced(const ActInput& input, const RequestContext& ctx) {
   ActTrace trace;
+  trace.transport = ctx.transport;  // also on a request whose decoding fails
   auto& wedges = host_.wedges();
   try {
     ActResponse res = co_await answer(input, ctx, trace);

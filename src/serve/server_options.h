@@ -8,6 +8,7 @@
 
 #include "runtime/batcher.h"
 #include "runtime/wedges.h"
+#include "serve/openpi_options.h"
 
 namespace tether::serve {
 
@@ -28,6 +29,7 @@ struct ServerOptions {
 
   // Transports beside HTTP (serve/transport.h), on `host`; absent: off, 0: the OS picks a free port.
   std::optional<uint16_t> openpi_port;  // openpi's WebSocket policy server protocol
+  OpenpiOptions openpi;                 // its key layout and limits
   std::optional<uint16_t> gr00t_port;   // Isaac-GR00T's ZMQ PolicyClient protocol
   std::optional<uint16_t> zmq_port;     // Tether's own ZMQ protocol (ROUTER: many robots on one port)
   // The ZMQ transports' own limits (docs/transports/gr00t.md, zmq.md): a larger frame makes libzmq drop the peer.
