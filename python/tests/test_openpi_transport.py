@@ -360,7 +360,7 @@ def test_a_client_that_never_reads_blocks_nobody(tmp_path):
     safety.write_text(json.dumps({"joint_limits": {
         j: {"has_position_limits": True, "min_position": 1000.0, "max_position": 1000.5} for j in joints}}))
     proc = ServeProcess(["--openpi-port", "0", "--write-timeout-ms", "1000", "--embodiment", "so100",
-                         "--safety-config", str(safety)])
+                         "--safety-config", str(safety), "--audit-log", str(tmp_path / "audit.jsonl")])
     try:
         stuck = handshake(openpi_port(proc), rcvbuf=4096)
         small = {"observation/image": IMAGE[:8, :8], "observation/wrist_image": WRIST[:8, :8]}
