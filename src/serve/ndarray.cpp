@@ -20,6 +20,9 @@ T load(const char* p) {
   return v;
 }
 
+
+}  // namespace
+
 float half_to_float(uint16_t h) {
   const uint32_t sign = uint32_t(h & 0x8000) << 16;
   uint32_t exponent = (h >> 10) & 0x1f, mantissa = h & 0x3ff, bits;
@@ -43,8 +46,6 @@ float half_to_float(uint16_t h) {
   std::memcpy(&f, &bits, sizeof f);
   return f;
 }
-
-}  // namespace
 
 int64_t NdArray::elements() const {
   int64_t n = 1;

@@ -37,6 +37,9 @@ const char* dtype_name(DType t);
 // Checks the shape (non-negative dims, at most 32 of them, no overflow) against data.size(); throws ArrayError.
 NdArray make_array(DType dtype, std::vector<int64_t> shape, std::string_view data);
 
+// An IEEE half (float16) bit pattern as float32, exactly (subnormals, infinities and NaN included).
+float half_to_float(uint16_t h);
+
 // Every element as float32 (integers and bool converted, float64 rounded); throws ArrayError for a value that float32
 // cannot hold.
 std::vector<float> to_float32(const NdArray& a);
