@@ -9,27 +9,34 @@ namespace tether::cpu::detail {
 
 namespace {
 
-template <class T, class Convert>
-std::vector<T> pack_panels(const float* w, int64_t n, int64_t k, int nr, Convert convert) {
+// `column_slot(j)` is where column j of a panel row goes (the identity, or the bf16 pairing).
+template <class T, class Convert, class Slot>
+std::vector<T> pack_panels(const float* w, int64_t n, int64_t k, int nr, Convert convert, Slot column_slot) {
   const int64_t num_panels = (n + nr - 1) / nr;
   std::vector<T> out(std::size_t(num_panels * nr * k), T{});
   for (int64_t row = 0; row < n; ++row) {
-    T* dst = out.data() + (row / nr) * k * nr + row % nr;
+    T* dst = out.data() + (row / nr) * k * nr + column_slot(int(row % nr));
     const float* src = w + row * k;
     for (int64_t i = 0; i < k; ++i) dst[i * nr] = convert(src[i]);
   }
   return out;
 }
 
+int same_slot(int j) { return j; }
+
 }  // namespace
 
 std::vector<float> pack_f32_panels(const float* w, int64_t n, int64_t k, int nr) {
-  return pack_panels<float>(w, n, k, nr, [](float v) { return v; });
+  return pack_panels<float>(w, n, k, nr, [](float v) { return v; }, same_slot);
 }
 
 std::vector<uint16_t> pack_half_panels(const float* w, int64_t n, int64_t k, int nr, PanelType type) {
-  if (type == PanelType::bf16) return pack_panels<uint16_t>(w, n, k, nr, [](float v) { return f32_to_bf16(v); });
-  return pack_panels<uint16_t>(w, n, k, nr, [](float v) { return f32_to_f16(v); });
+  if (type == PanelType::bf16) {
+    const int half = nr / 2;
+    auto paired = [half](int j) { return j < half ? 2 * j : 2 * (j - half) + 1; };
+    return pack_panels<uint16_t>(w, n, k, nr, [](float v) { return f32_to_bf16(v); }, paired);
+  }
+  return pack_panels<uint16_t>(w, n, k, nr, [](float v) { return f32_to_f16(v); }, same_slot);
 }
 
 std::vector<float> pad_bias(const float* bias, int64_t n, int nr) {

@@ -37,7 +37,9 @@ struct PanelKernel {
 };
 
 // W [n, k] (row-major float32) in panels of `panel_width` columns, zero past n: float32 panels, or the bit patterns
-// of bf16 / f16 (rounded to nearest even). The bias is zero-padded the same way (null: zeros).
+// of bf16 / f16 (rounded to nearest even). bf16 rows are paired: the 32-bit word j of a panel row holds column j in
+// its low half and column j + panel_width / 2 in its high half, so a kernel widens a whole row with a shift and a
+// mask instead of two zero-extensions. The bias is zero-padded the same way (null: zeros).
 std::vector<float> pack_f32_panels(const float* w, int64_t n, int64_t k, int panel_width);
 std::vector<uint16_t> pack_half_panels(const float* w, int64_t n, int64_t k, int panel_width, PanelType type);
 std::vector<float> pad_bias(const float* bias, int64_t n, int panel_width);

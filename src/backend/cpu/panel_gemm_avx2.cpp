@@ -16,12 +16,20 @@ struct Avx2 {
   static reg broadcast(float v) { return _mm256_set1_ps(v); }
   static reg fma(reg a, reg b, reg c) { return _mm256_fmadd_ps(a, b, c); }
   static reg add(reg a, reg b) { return _mm256_add_ps(a, b); }
-  static reg widen(const float* p) { return _mm256_loadu_ps(p); }
-  static reg widen(const uint16_t* p) {  // bf16 is the top half of a float32
-    const __m256i w = _mm256_cvtepu16_epi32(_mm_loadu_si128(reinterpret_cast<const __m128i*>(p)));
-    return _mm256_castsi256_ps(_mm256_slli_epi32(w, 16));
+  static void widen_row(const float* p, reg& lo, reg& hi) {
+    lo = _mm256_loadu_ps(p);
+    hi = _mm256_loadu_ps(p + width);
   }
-  static reg widen(const F16* p) { return _mm256_cvtph_ps(_mm_loadu_si128(reinterpret_cast<const __m128i*>(p))); }
+  // bf16 is the top half of a float32; a paired row holds columns j (low half) and j + 8 (high half) in one word.
+  static void widen_row(const uint16_t* p, reg& lo, reg& hi) {
+    const __m256i w = _mm256_loadu_si256(reinterpret_cast<const __m256i*>(p));
+    lo = _mm256_castsi256_ps(_mm256_slli_epi32(w, 16));
+    hi = _mm256_castsi256_ps(_mm256_and_si256(w, _mm256_set1_epi32(int(0xFFFF0000u))));
+  }
+  static void widen_row(const F16* p, reg& lo, reg& hi) {
+    lo = _mm256_cvtph_ps(_mm_loadu_si128(reinterpret_cast<const __m128i*>(p)));
+    hi = _mm256_cvtph_ps(_mm_loadu_si128(reinterpret_cast<const __m128i*>(p + width)));
+  }
 };
 
 using Gemm = PanelGemm<Avx2>;

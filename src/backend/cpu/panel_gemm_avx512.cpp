@@ -1,4 +1,4 @@
-// The panel GEMM on AVX-512 (F, BW, VL, DQ; compiled with those flags alone, chosen at run time): 8 rows x 32
+// The panel GEMM on AVX-512 (F, BW, VL, DQ; compiled with those flags alone, chosen at run time): 12 rows x 32
 // columns per tile.
 #if defined(__x86_64__)
 #include <immintrin.h>
@@ -10,23 +10,32 @@ namespace {
 
 struct Avx512 {
   using reg = __m512;
-  static constexpr int width = 16, rows = 8;  // 16 accumulators + 2 weight vectors + 1 broadcast of 32 registers
+  // 24 accumulators + 2 weight vectors + 1 broadcast of 32 registers: 12 rows make 24 FMAs per k step against 14 loads,
+  // and amortise the bf16 widening (which shares the FMA ports on Intel cores) over more of them.
+  static constexpr int width = 16, rows = 12;
   static reg zero() { return _mm512_setzero_ps(); }
   static reg load(const float* p) { return _mm512_loadu_ps(p); }
   static void store(float* p, reg v) { _mm512_storeu_ps(p, v); }
   static reg broadcast(float v) { return _mm512_set1_ps(v); }
   static reg fma(reg a, reg b, reg c) { return _mm512_fmadd_ps(a, b, c); }
   static reg add(reg a, reg b) { return _mm512_add_ps(a, b); }
-  static reg widen(const float* p) { return _mm512_loadu_ps(p); }
+  static void widen_row(const float* p, reg& lo, reg& hi) {
+    lo = _mm512_loadu_ps(p);
+    hi = _mm512_loadu_ps(p + width);
+  }
   // The all-ones maskz forms compute the same as the plain intrinsics; GCC 12 warns that the plain ones' internal
   // _mm512_undefined_*() "may be used uninitialized".
   static constexpr __mmask16 kAll = 0xFFFF;
-  static reg widen(const uint16_t* p) {  // bf16 is the top half of a float32
-    const __m512i w = _mm512_maskz_cvtepu16_epi32(kAll, _mm256_loadu_si256(reinterpret_cast<const __m256i*>(p)));
-    return _mm512_castsi512_ps(_mm512_maskz_slli_epi32(kAll, w, 16));
+  // bf16 is the top half of a float32; a paired row holds columns j (low half) and j + 16 (high half) in one word, so
+  // one load and two single-uop operations widen 32 columns.
+  static void widen_row(const uint16_t* p, reg& lo, reg& hi) {
+    const __m512i w = _mm512_loadu_si512(p);
+    lo = _mm512_castsi512_ps(_mm512_maskz_slli_epi32(kAll, w, 16));
+    hi = _mm512_castsi512_ps(_mm512_maskz_and_epi32(kAll, w, _mm512_set1_epi32(int(0xFFFF0000u))));
   }
-  static reg widen(const F16* p) {
-    return _mm512_maskz_cvtph_ps(kAll, _mm256_loadu_si256(reinterpret_cast<const __m256i*>(p)));
+  static void widen_row(const F16* p, reg& lo, reg& hi) {
+    lo = _mm512_maskz_cvtph_ps(kAll, _mm256_loadu_si256(reinterpret_cast<const __m256i*>(p)));
+    hi = _mm512_maskz_cvtph_ps(kAll, _mm256_loadu_si256(reinterpret_cast<const __m256i*>(p + width)));
   }
 };
 

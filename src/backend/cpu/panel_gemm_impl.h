@@ -2,7 +2,8 @@
 // translation unit per ISA (panel_gemm_avx2.cpp, panel_gemm_avx512.cpp, panel_gemm_portable.cpp). V provides:
 //   using reg; static constexpr int width, rows (MR);
 //   zero(), load(const float*), store(float*, reg), broadcast(float), fma(a, b, c) = a*b + c (one rounding),
-//   add(a, b), widen(const T*) for T = float, bf16 (uint16_t), f16 (uint16_t, tagged F16).
+//   add(a, b), and widen_row(const T* row, reg& lo, reg& hi): one k step of a panel (NR = 2 * width columns) widened to
+//   float32, for T = float, bf16 (uint16_t, in the paired layout of pack_half_panels) and f16 (uint16_t, tagged F16).
 #pragma once
 
 #include <omp.h>
@@ -25,7 +26,9 @@ struct PanelGemm {
   static constexpr int NR = 2 * V::width;  // two vector registers of columns
   static constexpr int MR = V::rows;
   static constexpr int64_t KC = 256;       // a panel block of KC x NR weights stays in L1
-  static constexpr int64_t MC = 16 * MR;   // an MC x KC block of x stays in L2
+  // An MC x KC block of x stays in L2 (384 KB at MR = 12) while every panel of the thread streams past it once: the
+  // larger the block, the fewer times the weights are read from memory (the prefix's M of ~300 is one block).
+  static constexpr int64_t MC = 32 * MR;
   static int64_t min(int64_t a, int64_t b) { return a < b ? a : b; }
 
   // acc = (first ? (accumulate ? y : 0) : y) + x[rows, k0:k0+kc] W^T; the last block adds the bias.
@@ -39,8 +42,8 @@ struct PanelGemm {
       acc[r][1] = load_y ? V::load(y + r * ldy + V::width) : V::zero();
     }
     for (int64_t k = 0; k < kc; ++k) {
-      const reg b0 = V::widen(panel + k * NR);
-      const reg b1 = V::widen(panel + k * NR + V::width);
+      reg b0, b1;
+      V::widen_row(panel + k * NR, b0, b1);
       for (int r = 0; r < R; ++r) {
         const reg a = V::broadcast(x[r * lda + k]);
         acc[r][0] = V::fma(a, b0, acc[r][0]);
@@ -86,14 +89,19 @@ struct PanelGemm {
         const int64_t kc = min(KC, a.k - k0);
         const bool first = k0 == 0, last = k0 + kc == a.k;
         const bool load_y = !first || a.accumulate;
-        for (int64_t i0 = 0; i0 < a.m; i0 += MC) {
-          const int64_t mc = min(MC, a.m - i0);
+        // Row blocks and the tiles within a block are split evenly (50 rows: 5 tiles of 10 at MR = 12, not 4 of 12
+        // and one of 2, whose weight loads would serve 4 FMAs per k step).
+        const int64_t blocks = (a.m + MC - 1) / MC;
+        for (int64_t b = 0; b < blocks; ++b) {
+          const int64_t i0 = a.m * b / blocks, mc = a.m * (b + 1) / blocks - i0;
+          const int64_t tiles = (mc + MR - 1) / MR;
           for (int64_t p = p0; p < p1; ++p) {
             const T* panel = panels + p * a.k * NR + k0 * NR;
             const float* bias = a.bias + p * NR;
             const int64_t cols = min(NR, a.n - p * NR);
-            for (int64_t i = i0; i < i0 + mc; i += MR) {
-              const int rows = int(min(MR, i0 + mc - i));
+            for (int64_t t_row = 0; t_row < tiles; ++t_row) {
+              const int64_t i = i0 + mc * t_row / tiles;
+              const int rows = int(i0 + mc * (t_row + 1) / tiles - i);
               const float* x = a.x + i * a.lda + k0;
               float* y = a.y + i * a.ldy + p * NR;
               if (cols == NR) {

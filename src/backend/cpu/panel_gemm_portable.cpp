@@ -36,16 +36,21 @@ struct Portable {
     for (int i = 0; i < width; ++i) r.v[i] = a.v[i] + b.v[i];
     return r;
   }
-  static reg widen(const float* p) { return load(p); }
-  static reg widen(const uint16_t* p) {
-    reg r;
-    for (int i = 0; i < width; ++i) r.v[i] = bf16_to_f32(p[i]);
-    return r;
+  static void widen_row(const float* p, reg& lo, reg& hi) {
+    lo = load(p);
+    hi = load(p + width);
   }
-  static reg widen(const F16* p) {
-    reg r;
-    for (int i = 0; i < width; ++i) r.v[i] = f16_to_f32(p[i].bits);
-    return r;
+  static void widen_row(const uint16_t* p, reg& lo, reg& hi) {  // paired: word j holds columns j and j + width
+    for (int i = 0; i < width; ++i) {
+      lo.v[i] = bf16_to_f32(p[2 * i]);
+      hi.v[i] = bf16_to_f32(p[2 * i + 1]);
+    }
+  }
+  static void widen_row(const F16* p, reg& lo, reg& hi) {
+    for (int i = 0; i < width; ++i) {
+      lo.v[i] = f16_to_f32(p[i].bits);
+      hi.v[i] = f16_to_f32(p[width + i].bits);
+    }
   }
 };
 
