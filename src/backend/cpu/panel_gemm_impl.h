@@ -25,7 +25,10 @@ struct PanelGemm {
   using reg = typename V::reg;
   static constexpr int NR = 2 * V::width;  // two vector registers of columns
   static constexpr int MR = V::rows;
-  static constexpr int64_t KC = 256;       // a panel block of KC x NR weights stays in L1
+  // A panel block of KC x NR weights stays in L1 (32 KB at NR = 32 in either dtype); half-size weights take twice
+  // the k steps per block, which halves how often the output tiles are reloaded (that traffic dominates at K = 16384).
+  template <class T>
+  static constexpr int64_t KC = sizeof(T) == 2 ? 512 : 256;
   // An MC x KC block of x stays in L2 (384 KB at MR = 12) while every panel of the thread streams past it once: the
   // larger the block, the fewer times the weights are read from memory (the prefix's M of ~300 is one block).
   static constexpr int64_t MC = 32 * MR;
@@ -33,15 +36,20 @@ struct PanelGemm {
 
   // acc = (first ? (accumulate ? y : 0) : y) + x[rows, k0:k0+kc] W^T; the last block adds the bias.
   // Each element's k loop runs in index order with one rounding per step, whatever `rows` is.
+  // `prefetch` (or null): the panel block the thread reads next, fetched one k step per k step so that it is in cache
+  // when its first tile starts (with 50 rows a block serves only 5 tiles, and the first one would wait on memory).
   template <class T, int R>
   static void tile(const float* x, int64_t lda, const T* panel, int64_t kc, const float* bias, float* y,
-                   int64_t ldy, bool load_y, bool last) {
+                   int64_t ldy, bool load_y, bool last, const T* prefetch) {
     reg acc[R][2];
     for (int r = 0; r < R; ++r) {
       acc[r][0] = load_y ? V::load(y + r * ldy) : V::zero();
       acc[r][1] = load_y ? V::load(y + r * ldy + V::width) : V::zero();
     }
     for (int64_t k = 0; k < kc; ++k) {
+      if (prefetch)
+        for (std::size_t line = 0; line < NR * sizeof(T); line += 64)
+          __builtin_prefetch(reinterpret_cast<const char*>(prefetch + k * NR) + line);
       reg b0, b1;
       V::widen_row(panel + k * NR, b0, b1);
       for (int r = 0; r < R; ++r) {
@@ -65,10 +73,10 @@ struct PanelGemm {
 
   template <class T, int R>
   static void tile_rows(int rows, const float* x, int64_t lda, const T* panel, int64_t kc, const float* bias,
-                        float* y, int64_t ldy, bool load_y, bool last) {
+                        float* y, int64_t ldy, bool load_y, bool last, const T* prefetch) {
     if constexpr (R > 0) {
-      if (rows == R) return tile<T, R>(x, lda, panel, kc, bias, y, ldy, load_y, last);
-      return tile_rows<T, R - 1>(rows, x, lda, panel, kc, bias, y, ldy, load_y, last);
+      if (rows == R) return tile<T, R>(x, lda, panel, kc, bias, y, ldy, load_y, last, prefetch);
+      return tile_rows<T, R - 1>(rows, x, lda, panel, kc, bias, y, ldy, load_y, last, prefetch);
     }
   }
 
@@ -85,8 +93,8 @@ struct PanelGemm {
       const int t = omp_get_thread_num(), nt = omp_get_num_threads();
       const int64_t p0 = num_panels * t / nt, p1 = num_panels * (t + 1) / nt;
       alignas(64) float edge[MR * NR];  // the last panel's tile when N is not a multiple of NR
-      for (int64_t k0 = 0; k0 < a.k; k0 += KC) {
-        const int64_t kc = min(KC, a.k - k0);
+      for (int64_t k0 = 0; k0 < a.k; k0 += KC<T>) {
+        const int64_t kc = min(KC<T>, a.k - k0);
         const bool first = k0 == 0, last = k0 + kc == a.k;
         const bool load_y = !first || a.accumulate;
         // Row blocks and the tiles within a block are split evenly (50 rows: 5 tiles of 10 at MR = 12, not 4 of 12
@@ -99,19 +107,23 @@ struct PanelGemm {
             const T* panel = panels + p * a.k * NR + k0 * NR;
             const float* bias = a.bias + p * NR;
             const int64_t cols = min(NR, a.n - p * NR);
+            // The next panel's block of the same k range, which the first tile fetches (the last panel's block has
+            // no successor here; the next k range starts with a fresh stream).
+            const T* next = p + 1 < p1 ? panel + a.k * NR : nullptr;
             for (int64_t t_row = 0; t_row < tiles; ++t_row) {
               const int64_t i = i0 + mc * t_row / tiles;
               const int rows = int(i0 + mc * (t_row + 1) / tiles - i);
               const float* x = a.x + i * a.lda + k0;
               float* y = a.y + i * a.ldy + p * NR;
+              const T* prefetch = t_row == 0 ? next : nullptr;
               if (cols == NR) {
-                tile_rows<T, MR>(rows, x, a.lda, panel, kc, bias, y, a.ldy, load_y, last);
+                tile_rows<T, MR>(rows, x, a.lda, panel, kc, bias, y, a.ldy, load_y, last, prefetch);
               } else {
                 for (int r = 0; r < rows; ++r) {
                   if (load_y) std::memcpy(edge + r * NR, y + r * a.ldy, std::size_t(cols) * sizeof(float));
                   std::memset(edge + r * NR + cols, 0, std::size_t(NR - cols) * sizeof(float));
                 }
-                tile_rows<T, MR>(rows, x, a.lda, panel, kc, bias, edge, NR, load_y, last);
+                tile_rows<T, MR>(rows, x, a.lda, panel, kc, bias, edge, NR, load_y, last, prefetch);
                 for (int r = 0; r < rows; ++r)
                   std::memcpy(y + r * a.ldy, edge + r * NR, std::size_t(cols) * sizeof(float));
               }
