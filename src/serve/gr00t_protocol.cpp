@@ -397,6 +397,25 @@ void write_ndarray(msgpack::Writer& w, const std::string& npy) {
   w.bin(npy);
 }
 
+std::vector<std::string> reset_episodes(const Call& call) {
+  if (!call.data.is_nil() && !call.data.is_map()) fail("invalid_field", "data: expected a map or null, got " + kind_of(call.data));
+  const msgpack::Value* options = call.data.is_map() ? call.data.find("options") : nullptr;
+  if (options && !options->is_nil() && !options->is_map())
+    fail("invalid_field", "data.options: expected a map or null, got " + kind_of(*options));
+  const msgpack::Value* id = options && options->is_map() ? options->find("episode_id") : nullptr;
+  if (!id || id->is_nil()) return {""};
+  if (id->is_str()) return {std::string(id->bytes)};
+  if (!id->is_array()) fail("invalid_field", "data.options.episode_id: expected a string or a list of strings, got " + kind_of(*id));
+  std::vector<std::string> ids;
+  for (std::size_t i = 0; i < id->items.size(); ++i) {
+    const msgpack::Value& item = id->items[i];
+    if (!item.is_str())
+      fail("invalid_field", "data.options.episode_id[" + std::to_string(i) + "]: expected a string, got " + kind_of(item));
+    ids.emplace_back(item.bytes);
+  }
+  return ids;
+}
+
 std::vector<models::ModalityGroup> action_groups_answered(const models::ModelSpec& spec, int64_t action_dim) {
   std::vector<models::ModalityGroup> groups = models::action_groups(spec);
   // One group takes what the server answers, also when an embodiment cut the model's padded output to its joints.

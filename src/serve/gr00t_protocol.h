@@ -45,6 +45,10 @@ Layout observation_layout(const Call& call);
 // unknown_field.
 ActRequest decode_item(const Call& call, int64_t index, const models::ModelSpec& spec);
 
+// The episodes a reset call ends: data.options.episode_id (a string, or a list of strings), else the default episode
+// "" that get_action calls without an episode_id share. Throws HttpError(400, invalid_field).
+std::vector<std::string> reset_episodes(const Call& call);
+
 // The action groups a reply is split into (models::action_groups); a single group takes the `action_dim` the server
 // answers with (an embodiment may cut a padded output to its joints).
 std::vector<models::ModalityGroup> action_groups_answered(const models::ModelSpec& spec, int64_t action_dim);

@@ -130,7 +130,10 @@ class Gr00tTransport final : public Transport {
     check_api_key(call.api_token, ctx_.options.api_key);
     switch (call.endpoint) {
       case gr00t::Endpoint::ping: return gr00t::ping_reply();
-      case gr00t::Endpoint::reset: return gr00t::reset_reply();
+      case gr00t::Endpoint::reset:
+        // The episode's last good chunk, guard history and skip cache go: its next get_action starts afresh.
+        for (const std::string& id : gr00t::reset_episodes(call)) ctx_.host.wedges().episodes().end(id);
+        return gr00t::reset_reply();
       case gr00t::Endpoint::get_modality_config:
         if (!ctx_.host.serving())
           throw HttpError(503, "not_ready", std::string("the model is not ready (") + health_state_name(ctx_.host.health()) + ")");

@@ -3,6 +3,7 @@
 #include <gtest/gtest.h>
 
 #include <cstring>
+#include <functional>
 
 #include "serve/gr00t_protocol.h"
 #include "serve/http_error.h"
@@ -392,4 +393,52 @@ TEST(Gr00tProtocol, ActionReplySplitsIntoGroupsAndConfigListsThem) {
   using Groups = std::vector<std::pair<std::string, int64_t>>;
   EXPECT_EQ(groups_of("state_groups"), (Groups{{"left_arm", 2}, {"gripper", 1}}));
   EXPECT_EQ(groups_of("action_groups"), (Groups{{"arm", 2}, {"hand", 1}}));
+}
+
+TEST(Gr00tProtocol, ResetNamesTheEpisodesItEnds) {
+  const auto reset = [](const std::function<void(mp::Writer&)>& options) {
+    mp::Writer w;
+    w.map(2);
+    w.str("endpoint");
+    w.str("reset");
+    w.str("data");
+    w.map(1);
+    w.str("options");
+    options(w);
+    return w.take();
+  };
+  const auto episodes = [](const std::string& message) { return gr00t::reset_episodes(gr00t::parse_call(message)); };
+  using Ids = std::vector<std::string>;
+  EXPECT_EQ(episodes(reset([](mp::Writer& w) { w.nil(); })), Ids{""});  // the default episode
+  EXPECT_EQ(episodes(reset([](mp::Writer& w) { w.map(0); })), Ids{""});
+  EXPECT_EQ(episodes(reset([](mp::Writer& w) {
+              w.map(1);
+              w.str("episode_id");
+              w.str("ep7");
+            })),
+            Ids{"ep7"});
+  EXPECT_EQ(episodes(reset([](mp::Writer& w) {
+              w.map(1);
+              w.str("episode_id");
+              w.array(2);
+              w.str("a");
+              w.str("b");
+            })),
+            (Ids{"a", "b"}));
+  mp::Writer bare;
+  bare.map(1);
+  bare.str("endpoint");
+  bare.str("reset");
+  EXPECT_EQ(episodes(bare.take()), Ids{""});  // no data at all
+  try {
+    episodes(reset([](mp::Writer& w) {
+      w.map(1);
+      w.str("episode_id");
+      w.integer(3);
+    }));
+    FAIL();
+  } catch (const HttpError& e) {
+    EXPECT_EQ(e.code(), "invalid_field");
+    EXPECT_NE(std::string(e.what()).find("data.options.episode_id"), std::string::npos);
+  }
 }
