@@ -1,13 +1,13 @@
 """The GR00T ZMQ transport (`tether serve --gr00t-port`) through the real binary, spoken to by a client written from
 Isaac-GR00T's PolicyClient protocol (a REQ socket, msgpack requests {endpoint, data, api_token}, numpy arrays as
 {"__ndarray_class__": True, "as_npy": <.npy bytes>}, zmq_clients.py): endpoints, both observation layouts, batches,
-errors, framing garbage, the API token, metrics, traces and the safety wedges."""
+errors, framing garbage, the API token, reset ending an episode, metrics, traces and the safety wedges."""
 
 from __future__ import annotations
 
 import base64
 import time
-from typing import Any, Dict
+from typing import Any, Dict, Optional
 
 import numpy as np
 import pytest
@@ -229,6 +229,29 @@ def test_deadline_answers_from_the_last_good_chunk():
         item = reply[1]["tether"][0]
         assert item["deadline_exceeded"] is True and item["action_source"] == "last_good"
         assert reply[0]["action"].shape == (1, CHUNK, DIM)
+
+
+def test_reset_ends_the_episode():
+    # With the similarity skip on, a repeated observation is answered from the episode's cached chunk; after reset the
+    # episode starts from nothing, so the model runs again.
+    with served(["--gr00t-port", "0", "--action-similarity-threshold", "0.01", "--max-similar-skips", "5"]) as proc, \
+            Gr00tClient(proc.transport_ports["gr00t"]) as c:
+
+        def source(episode: Optional[str]) -> str:
+            options = {"seed": 7} if episode is None else {"seed": 7, "episode_id": episode}
+            return c.get_action(nested_obs(), options)[1]["tether"][0]["action_source"]
+
+        assert [source("r1"), source("r1"), source("r2")] == ["model", "cache", "model"]
+        assert c.call("reset", {"options": {"episode_id": "r1"}}) == {}
+        assert source("r1") == "model" and source("r2") == "cache"  # only the named episode ended
+        assert c.call("reset", {"options": {"episode_id": ["r1", "r2"]}}) == {}
+        assert source("r1") == "model" and source("r2") == "model"
+        # Without an episode_id, reset ends the default episode, the one get_action without one uses.
+        assert [source(None), source(None)] == ["model", "cache"]
+        assert c.call("reset", {"options": None}) == {}
+        assert source(None) == "model" and source("r1") == "cache"
+        err = c.call("reset", {"options": {"episode_id": 5}})
+        assert err["code"] == "invalid_field" and "episode_id" in err["error"]
 
 
 def test_breaker_opens(tmp_path):

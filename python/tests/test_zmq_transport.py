@@ -1,6 +1,7 @@
 """Tether's own ZMQ transport (`tether serve --zmq-port`) through the real binary: msgpack requests with /act's fields
 over DEALER and REQ sockets (zmq_clients.py), request ids matched by `id`, errors and framing garbage, limits, CURVE
-encryption, the API key, metrics, traces, the safety wedges, and TetherClient(transport="zmq")."""
+encryption, host names for --host (both ZMQ transports), the API key, metrics, traces, the safety wedges, and
+TetherClient(transport="zmq")."""
 
 from __future__ import annotations
 
@@ -17,7 +18,7 @@ zmq = pytest.importorskip("zmq")
 from serve_process import DEMO, binary_path, metric  # noqa: E402
 from test_serve_integration import STATE, act_body, check_actions, ok_json, post_act  # noqa: E402
 from tether_client import AuthenticationError, InvalidRequestError, TetherClient  # noqa: E402
-from zmq_clients import PNG, Dealer, act_msg, connect, metrics_of, served, trace_lines  # noqa: E402
+from zmq_clients import PNG, Dealer, Gr00tClient, act_msg, connect, metrics_of, served, trace_lines  # noqa: E402
 
 pytestmark = [
     pytest.mark.integration,
@@ -128,6 +129,24 @@ def test_bad_curve_key_fails_at_start(tmp_path):
     bad.write_text("not-a-key")
     proc = start_failure("--zmq-port", "0", "--zmq-curve-secret-file", str(bad))
     assert proc.returncode != 0 and "CURVE" in proc.stderr
+
+
+def test_host_name_is_resolved_for_both_zmq_transports():
+    # libzmq binds numeric addresses only: the server resolves the name and binds each of its addresses.
+    with served(["--host", "localhost", "--zmq-port", "0", "--gr00t-port", "0"]) as proc:
+        for name in ("zmq", "gr00t"):
+            assert any(line.startswith(f"tether serve: {name} listening on localhost:") for line in proc.stdout_seen)
+        with Dealer(proc.transport_ports["zmq"], host="localhost") as d:
+            assert d.act()["status"] == 200
+        with Gr00tClient(proc.transport_ports["gr00t"], host="127.0.0.1") as c:
+            assert c.call("ping", requires_input=False)["status"] == "ok"
+
+
+def test_unresolvable_host_is_a_usage_error():
+    proc = start_failure("--host", "no-such-host.invalid", "--zmq-port", "0", "--gr00t-port", "0")
+    assert proc.returncode == 2, proc.stderr
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1 and "no-such-host.invalid" in lines[0], proc.stderr
 
 
 def test_api_key_client_and_metrics():
