@@ -51,6 +51,21 @@ def trace_lines(record_dir: Path) -> List[Dict[str, Any]]:
     return [json.loads(line) for f in sorted(record_dir.glob("trace-*.jsonl")) for line in f.read_text().splitlines()]
 
 
+class _Client:
+    """A client owning one socket; `with client:` closes it at the end of the block."""
+
+    socket: zmq.Socket
+
+    def close(self) -> None:
+        self.socket.close(0)
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        self.close()
+
+
 # -- GR00T: msgpack with numpy arrays as {"__ndarray_class__": True, "as_npy": <.npy bytes>} ---------------------
 
 
@@ -78,7 +93,7 @@ def unpack(data: bytes) -> Any:
     return msgpack.unpackb(data, object_hook=_decode)
 
 
-class Gr00tClient:
+class Gr00tClient(_Client):
     """PolicyClient's wire behaviour: one REQ socket, one request and one reply at a time."""
 
     def __init__(self, port: int, api_token: Optional[str] = None, timeout_ms: int = 30000,
@@ -98,15 +113,6 @@ class Gr00tClient:
     def get_action(self, observation: Dict[str, Any], options: Optional[Dict[str, Any]] = None) -> Any:
         return self.call("get_action", {"observation": observation, "options": options})
 
-    def close(self) -> None:
-        self.socket.close(0)
-
-    def __enter__(self) -> "Gr00tClient":
-        return self
-
-    def __exit__(self, *exc: Any) -> None:
-        self.close()
-
 
 # -- Tether ZMQ: a msgpack map with /act's fields ----------------------------------------------------------------
 
@@ -118,7 +124,7 @@ def act_msg(**fields: Any) -> Dict[str, Any]:
     return {k: v for k, v in msg.items() if v is not None}
 
 
-class Dealer:
+class Dealer(_Client):
     """A DEALER socket: requests may be pipelined, replies are matched by `id`."""
 
     def __init__(self, port: int, server_key: Optional[bytes] = None, timeout_ms: int = 30000,
@@ -134,12 +140,3 @@ class Dealer:
     def act(self, **fields: Any) -> Dict[str, Any]:
         self.send(act_msg(**fields))
         return self.recv()
-
-    def close(self) -> None:
-        self.socket.close(0)
-
-    def __enter__(self) -> "Dealer":
-        return self
-
-    def __exit__(self, *exc: Any) -> None:
-        self.close()
