@@ -258,14 +258,17 @@ ActRequest decode_item(const Call& call, int64_t index, const models::ModelSpec&
     if (g == groups.size())
       fail("unknown_field", "observation.state." + entry.first + ": unknown state group (the model has: " +
                                 groups_text(groups) + ")");
-    if (given[g]) fail("invalid_field", "observation.state." + entry.first + ": state group '" + groups[g].name + "' is given twice");
+    if (given[g])
+      fail("invalid_field",
+           "observation.state." + entry.first + ": state group '" + groups[g].name + "' is given twice");
     given[g] = &entry;
   }
-  for (std::size_t g = 0; g < groups.size(); ++g)
-    if (!given[g])
-      fail("missing_field", "observation.state." + groups[g].name + " is required (" + std::to_string(groups[g].dim) +
-                                " values" + (groups.size() > 1 ? "; the model's state groups: " + groups_text(groups) : "") +
-                                ")");
+  for (std::size_t g = 0; g < groups.size(); ++g) {
+    if (given[g]) continue;
+    const std::string listing = groups.size() > 1 ? "; the model's state groups: " + groups_text(groups) : "";
+    fail("missing_field", "observation.state." + groups[g].name + " is required (" + std::to_string(groups[g].dim) +
+                              " values" + listing + ")");
+  }
   for (std::size_t g = 0; g < groups.size(); ++g) {
     const auto& [name, v] = *given[g];
     const std::string field = "observation.state." + name;
@@ -288,7 +291,8 @@ ActRequest decode_item(const Call& call, int64_t index, const models::ModelSpec&
       fail("invalid_field", field + ": " + e.what());
     }
     const std::size_t start = (std::size_t(index) * std::size_t(steps) + std::size_t(steps - 1)) * std::size_t(dim);
-    o.state.insert(o.state.end(), all.begin() + std::ptrdiff_t(start), all.begin() + std::ptrdiff_t(start + std::size_t(dim)));
+    const auto from = all.begin() + std::ptrdiff_t(start);
+    o.state.insert(o.state.end(), from, from + std::ptrdiff_t(dim));
   }
   if (batch < 1) batch = 1;
   if (!f.language) fail("missing_field", flat ? "observation.task is required (the instruction, one per batch item)"
@@ -398,19 +402,22 @@ void write_ndarray(msgpack::Writer& w, const std::string& npy) {
 }
 
 std::vector<std::string> reset_episodes(const Call& call) {
-  if (!call.data.is_nil() && !call.data.is_map()) fail("invalid_field", "data: expected a map or null, got " + kind_of(call.data));
+  if (!call.data.is_nil() && !call.data.is_map())
+    fail("invalid_field", "data: expected a map or null, got " + kind_of(call.data));
   const msgpack::Value* options = call.data.is_map() ? call.data.find("options") : nullptr;
   if (options && !options->is_nil() && !options->is_map())
     fail("invalid_field", "data.options: expected a map or null, got " + kind_of(*options));
   const msgpack::Value* id = options && options->is_map() ? options->find("episode_id") : nullptr;
   if (!id || id->is_nil()) return {""};
   if (id->is_str()) return {std::string(id->bytes)};
-  if (!id->is_array()) fail("invalid_field", "data.options.episode_id: expected a string or a list of strings, got " + kind_of(*id));
+  if (!id->is_array())
+    fail("invalid_field", "data.options.episode_id: expected a string or a list of strings, got " + kind_of(*id));
   std::vector<std::string> ids;
   for (std::size_t i = 0; i < id->items.size(); ++i) {
     const msgpack::Value& item = id->items[i];
     if (!item.is_str())
-      fail("invalid_field", "data.options.episode_id[" + std::to_string(i) + "]: expected a string, got " + kind_of(item));
+      fail("invalid_field",
+           "data.options.episode_id[" + std::to_string(i) + "]: expected a string, got " + kind_of(item));
     ids.emplace_back(item.bytes);
   }
   return ids;
@@ -446,8 +453,8 @@ std::string action_reply(const std::vector<models::ModalityGroup>& groups, bool 
     }
     column += g.dim;
     w.str(flat ? "action." + g.name : g.name);
-    write_ndarray(w, write_npy(DType::f32, {batch, rows, g.dim},
-                               std::string_view(reinterpret_cast<const char*>(part.data()), part.size() * sizeof(float))));
+    const std::string_view bytes(reinterpret_cast<const char*>(part.data()), part.size() * sizeof(float));
+    write_ndarray(w, write_npy(DType::f32, {batch, rows, g.dim}, bytes));
   }
   w.map(1);
   w.str("tether");

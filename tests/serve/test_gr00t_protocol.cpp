@@ -342,8 +342,10 @@ TEST(Gr00tProtocol, StateGroupsAreCheckedOneByOne) {
   EXPECT_NE(unknown.find("unknown_field: observation.state.tail: unknown state group"), std::string::npos) << unknown;
   EXPECT_NE(unknown.find("'left_arm' (2 values), 'gripper' (1 values)"), std::string::npos) << unknown;
   o.state = {{"left_arm", 3}, {"gripper", 1}};
-  EXPECT_NE(code_of(request(o), 0, s).find("invalid_state: observation.state.left_arm has 3 values, the model expects 2"),
-            std::string::npos);
+  const std::string wrong_size = code_of(request(o), 0, s);
+  EXPECT_NE(wrong_size.find("invalid_state: observation.state.left_arm has 3 values, the model expects 2"),
+            std::string::npos)
+      << wrong_size;
   // The single-group spelling means nothing to a model with several groups.
   o.state = {{"state", 3}};
   EXPECT_NE(code_of(request(o), 0, s).find("unknown_field: observation.state.state"), std::string::npos);

@@ -218,7 +218,8 @@ TEST(ServerKServeEndpoints, RequestsRefusedWhileDecodingLeaveATraceLine) {
   t.dir = dir.string();
   t.fsync = runtime::TraceOptions::Fsync::every_line;
   o.wedges.record = t;
-  const auto id = [](const std::string& v) { return std::vector<std::pair<std::string, std::string>>{{"X-Tether-Request-ID", v}}; };
+  using Headers = std::vector<std::pair<std::string, std::string>>;
+  const auto id = [](const std::string& v) { return Headers{{"X-Tether-Request-ID", v}}; };
   {
     V2Server s(o);
     ASSERT_EQ(http_post(s.port(), "/v2/models/demo/infer", infer_json(1).dump(), id("good")).status, 200);
