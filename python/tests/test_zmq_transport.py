@@ -182,9 +182,13 @@ def test_guard_traces_deadline_breaker(tmp_path):
         assert np.all(a[:, :5] >= -100) and np.all(a[:, :5] <= 100) and np.all(a[:, 5] >= 0) and np.all(a[:, 5] <= 100)
         assert "guard_clamped" in reply and reply["joint_names"][0] == "shoulder_pan"
         assert d.act(state=[0.0])["status"] == 400
+        d.socket.send(b"\xc1")  # not msgpack: refused while decoding, traced too
+        assert d.recv()["error"]["code"] == "bad_msgpack"
+        assert metric(metrics_of(proc), "tether_requests_total", transport="zmq", status="400") == 2
     lines = trace_lines(record)
-    assert len(lines) == 2 and all(line["transport"] == "zmq" for line in lines)
+    assert len(lines) == 3 and all(line["transport"] == "zmq" for line in lines)
     assert lines[0]["episode_id"] == "z1"
+    assert lines[2]["status"] == "failed" and lines[2]["error"]["code"] == "bad_msgpack"
 
     with served(["--zmq-port", "0", "--inject-latency-ms", "600", "--deadline-ms", "150",
                  "--request-timeout-ms", "5000"]) as proc, Dealer(proc.transport_ports["zmq"]) as d:
