@@ -71,6 +71,9 @@ def test_modality_config_describes_the_checkpoint(client):
     assert set(cfg["video"]) == {"delta_indices", "modality_keys", "sin_cos_embedding_keys", "mean_std_embedding_keys",
                                  "action_configs"}
     assert cfg["tether"]["state_dim"] == 6 and cfg["tether"]["action_dim"] == DIM
+    # A lerobot checkpoint: one state group and one action group, named after its features.
+    assert cfg["tether"]["state_groups"] == [{"name": "state", "dim": 6}]
+    assert cfg["tether"]["action_groups"] == [{"name": "action", "dim": DIM}]
     assert cfg["tether"]["camera_keys"] == ["observation.images.front"]
 
 
