@@ -38,6 +38,9 @@ seeds_for() {
     fuzz_act_request) echo "fuzz/seeds/act_request" ;;
     fuzz_kserve_request) echo "fuzz/seeds/kserve_request" ;;
     fuzz_openpi_request) echo "fuzz/seeds/openpi_request" ;;
+    fuzz_gr00t_request) echo "fuzz/seeds/gr00t_request" ;;
+    fuzz_zmq_request) echo "fuzz/seeds/zmq_request" ;;
+    fuzz_npy) echo "fuzz/seeds/npy" ;;
   esac
 }
 

@@ -1,15 +1,12 @@
 """The GR00T ZMQ transport (`tether serve --gr00t-port`) through the real binary, spoken to by a client written from
 Isaac-GR00T's PolicyClient protocol (a REQ socket, msgpack requests {endpoint, data, api_token}, numpy arrays as
-{"__ndarray_class__": True, "as_npy": <.npy bytes>}): endpoints, both observation layouts, batches, errors, framing
-garbage, the API token, metrics, traces and the safety wedges."""
+{"__ndarray_class__": True, "as_npy": <.npy bytes>}, zmq_clients.py): endpoints, both observation layouts, batches,
+errors, framing garbage, the API token, reset ending an episode, metrics, traces and the safety wedges."""
 
 from __future__ import annotations
 
 import base64
-import io
-import json
 import time
-from pathlib import Path
 from typing import Any, Dict, Optional
 
 import numpy as np
@@ -18,8 +15,9 @@ import pytest
 msgpack = pytest.importorskip("msgpack")
 zmq = pytest.importorskip("zmq")
 
-from serve_process import DEMO, ServeProcess, binary_path, metric, parse_metrics, request  # noqa: E402
+from serve_process import ServeProcess, binary_path, metric  # noqa: E402
 from test_serve_integration import STATE, act_body, check_actions, ok_json, post_act  # noqa: E402
+from zmq_clients import Gr00tClient, connect, metrics_of, pack, served, trace_lines, unpack  # noqa: E402
 
 pytestmark = [
     pytest.mark.integration,
@@ -28,60 +26,6 @@ pytestmark = [
 
 CHUNK, DIM = 50, 6
 FRAME = (np.arange(16 * 16 * 3) % 251).astype(np.uint8).reshape(16, 16, 3)
-
-
-# -- a client written from the protocol ----------------------------------------------------------------------
-
-
-def _encode(obj: Any) -> Any:
-    if isinstance(obj, np.ndarray):
-        out = io.BytesIO()
-        np.save(out, obj, allow_pickle=False)
-        return {"__ndarray_class__": True, "as_npy": out.getvalue()}
-    return obj
-
-
-def _decode(obj: Any) -> Any:
-    if isinstance(obj, dict) and "__ndarray_class__" in obj:
-        return np.load(io.BytesIO(obj["as_npy"]), allow_pickle=False)
-    if isinstance(obj, dict) and "__ModalityConfig_class__" in obj:
-        return dict(obj["as_json"])
-    return obj
-
-
-def pack(obj: Any) -> bytes:
-    return msgpack.packb(obj, default=_encode)
-
-
-def unpack(data: bytes) -> Any:
-    return msgpack.unpackb(data, object_hook=_decode)
-
-
-class Gr00tClient:
-    """PolicyClient's wire behaviour: one REQ socket, one request and one reply at a time."""
-
-    def __init__(self, port: int, api_token: Optional[str] = None, timeout_ms: int = 30000) -> None:
-        self.context = zmq.Context.instance()
-        self.socket = self.context.socket(zmq.REQ)
-        self.socket.setsockopt(zmq.LINGER, 0)
-        self.socket.setsockopt(zmq.RCVTIMEO, timeout_ms)
-        self.socket.connect(f"tcp://127.0.0.1:{port}")
-        self.api_token = api_token
-
-    def call(self, endpoint: str, data: Optional[Dict[str, Any]] = None, requires_input: bool = True) -> Any:
-        req: Dict[str, Any] = {"endpoint": endpoint}
-        if requires_input:
-            req["data"] = data
-        if self.api_token:
-            req["api_token"] = self.api_token
-        self.socket.send(pack(req))
-        return unpack(self.socket.recv())
-
-    def get_action(self, observation: Dict[str, Any], options: Optional[Dict[str, Any]] = None) -> Any:
-        return self.call("get_action", {"observation": observation, "options": options})
-
-    def close(self) -> None:
-        self.socket.close(0)
 
 
 def nested_obs(batch: int = 1, frames: int = 1, camera: str = "front", state_dim: int = 6) -> Dict[str, Any]:
@@ -97,22 +41,16 @@ def http_actions(server: ServeProcess, seed: int) -> np.ndarray:
     return check_actions(ok_json(post_act(server, act_body(image=image, seed=seed))))
 
 
-def metrics_of(server: ServeProcess) -> Dict:
-    return parse_metrics(request(server.port, "GET", "/metrics")[2].decode())
-
-
 @pytest.fixture(scope="module")
 def gserver():
-    proc = ServeProcess(["--gr00t-port", "0"])
-    yield proc
-    assert proc.stop() == 0, proc.stderr_tail()
+    with served(["--gr00t-port", "0"]) as proc:
+        yield proc
 
 
 @pytest.fixture
 def client(gserver):
-    c = Gr00tClient(gserver.transport_ports["gr00t"])
-    yield c
-    c.close()
+    with Gr00tClient(gserver.transport_ports["gr00t"]) as c:
+        yield c
 
 
 # -- endpoints -------------------------------------------------------------------------------------------------
@@ -133,6 +71,9 @@ def test_modality_config_describes_the_checkpoint(client):
     assert set(cfg["video"]) == {"delta_indices", "modality_keys", "sin_cos_embedding_keys", "mean_std_embedding_keys",
                                  "action_configs"}
     assert cfg["tether"]["state_dim"] == 6 and cfg["tether"]["action_dim"] == DIM
+    # A lerobot checkpoint: one state group and one action group, named after its features.
+    assert cfg["tether"]["state_groups"] == [{"name": "state", "dim": 6}]
+    assert cfg["tether"]["action_groups"] == [{"name": "action", "dim": DIM}]
     assert cfg["tether"]["camera_keys"] == ["observation.images.front"]
 
 
@@ -200,10 +141,7 @@ def test_errors_are_answered_and_serving_goes_on(client):
 
 def test_multipart_garbage_is_answered_or_dropped(gserver):
     port = gserver.transport_ports["gr00t"]
-    dealer = zmq.Context.instance().socket(zmq.DEALER)
-    dealer.setsockopt(zmq.LINGER, 0)
-    dealer.setsockopt(zmq.RCVTIMEO, 10000)
-    dealer.connect(f"tcp://127.0.0.1:{port}")
+    dealer = connect(zmq.DEALER, port, timeout_ms=10000)
     try:
         dealer.send_multipart([b"", b"a", b"b"])  # two message frames
         reply = dealer.recv_multipart()
@@ -215,47 +153,34 @@ def test_multipart_garbage_is_answered_or_dropped(gserver):
         assert len(reply) == 1 and unpack(reply[0])["status"] == "ok"
     finally:
         dealer.close(0)
-    c = Gr00tClient(port)
-    try:
+    with Gr00tClient(port) as c:
         assert c.call("ping", requires_input=False)["status"] == "ok"
-    finally:
-        c.close()
 
 
 def test_oversize_message_is_dropped(tmp_path):
-    proc = ServeProcess(["--gr00t-port", "0", "--gr00t-max-message-bytes", "4096"])
-    try:
+    with served(["--gr00t-port", "0", "--gr00t-max-message-bytes", "4096"]) as proc:
         port = proc.transport_ports["gr00t"]
-        big = Gr00tClient(port, timeout_ms=1500)
-        big.socket.send(pack({"endpoint": "ping", "data": {"pad": b"x" * 10000}}))
-        with pytest.raises(zmq.Again):
-            big.socket.recv()
-        big.close()
-        c = Gr00tClient(port)
-        assert c.call("ping", requires_input=False)["status"] == "ok"
-        c.close()
-    finally:
-        assert proc.stop() == 0, proc.stderr_tail()
+        with Gr00tClient(port, timeout_ms=1500) as big:
+            big.socket.send(pack({"endpoint": "ping", "data": {"pad": b"x" * 10000}}))
+            with pytest.raises(zmq.Again):
+                big.socket.recv()
+        with Gr00tClient(port) as c:
+            assert c.call("ping", requires_input=False)["status"] == "ok"
 
 
 def test_api_token(tmp_path):
-    proc = ServeProcess(["--gr00t-port", "0"], env={"TETHER_API_KEY": "sesame"})
-    try:
+    with served(["--gr00t-port", "0"], env={"TETHER_API_KEY": "sesame"}) as proc:
         port = proc.transport_ports["gr00t"]
-        anon = Gr00tClient(port)
-        err = anon.call("ping", requires_input=False)
-        assert err["error"].startswith("Unauthorized: Invalid API token") and err["status"] == 401
-        assert anon.get_action(nested_obs())["code"] == "unauthorized"
-        anon.close()
-        good = Gr00tClient(port, api_token="sesame")
-        assert good.call("ping", requires_input=False)["status"] == "ok"
-        assert good.get_action(nested_obs())[0]["action"].shape == (1, CHUNK, DIM)
-        good.close()
+        with Gr00tClient(port) as anon:
+            err = anon.call("ping", requires_input=False)
+            assert err["error"].startswith("Unauthorized: Invalid API token") and err["status"] == 401
+            assert anon.get_action(nested_obs())["code"] == "unauthorized"
+        with Gr00tClient(port, api_token="sesame") as good:
+            assert good.call("ping", requires_input=False)["status"] == "ok"
+            assert good.get_action(nested_obs())[0]["action"].shape == (1, CHUNK, DIM)
         m = metrics_of(proc)
         assert metric(m, "tether_requests_total", transport="gr00t", status="401") == 1
         assert metric(m, "tether_requests_total", transport="gr00t", status="200") == 1
-    finally:
-        assert proc.stop() == 0, proc.stderr_tail()
 
 
 def test_kill_shuts_down_gracefully_when_allowed():
@@ -274,9 +199,8 @@ def test_kill_shuts_down_gracefully_when_allowed():
 
 def test_guard_and_traces_and_metrics(tmp_path):
     record = tmp_path / "traces"
-    proc = ServeProcess(["--gr00t-port", "0", "--embodiment", "so100", "--record", str(record)])
-    c = Gr00tClient(proc.transport_ports["gr00t"])
-    try:
+    with served(["--gr00t-port", "0", "--embodiment", "so100", "--record", str(record)]) as proc, \
+            Gr00tClient(proc.transport_ports["gr00t"]) as c:
         actions, info = c.get_action(nested_obs(), {"episode_id": "g1"})
         a = actions["action"][0]
         assert np.all(a[:, :5] >= -100) and np.all(a[:, :5] <= 100) and np.all(a[:, 5] >= 0) and np.all(a[:, 5] <= 100)
@@ -285,10 +209,7 @@ def test_guard_and_traces_and_metrics(tmp_path):
         m = metrics_of(proc)
         assert metric(m, "tether_requests_total", transport="gr00t", endpoint="/act", status="200") == 1
         assert metric(m, "tether_requests_total", transport="gr00t", status="400") == 1
-    finally:
-        c.close()
-        assert proc.stop() == 0, proc.stderr_tail()
-    lines = [json.loads(line) for f in sorted(record.glob("trace-*.jsonl")) for line in f.read_text().splitlines()]
+    lines = trace_lines(record)
     assert len(lines) == 2
     assert all(line["transport"] == "gr00t" for line in lines)
     assert lines[0]["episode_id"] == "g1" and lines[0]["status"] == "success"
@@ -296,10 +217,8 @@ def test_guard_and_traces_and_metrics(tmp_path):
 
 
 def test_deadline_answers_from_the_last_good_chunk():
-    proc = ServeProcess(["--gr00t-port", "0", "--inject-latency-ms", "600", "--deadline-ms", "150",
-                         "--request-timeout-ms", "5000"])
-    c = Gr00tClient(proc.transport_ports["gr00t"])
-    try:
+    with served(["--gr00t-port", "0", "--inject-latency-ms", "600", "--deadline-ms", "150",
+                 "--request-timeout-ms", "5000"]) as proc, Gr00tClient(proc.transport_ports["gr00t"]) as c:
         first = c.get_action(nested_obs(), {"seed": 7, "episode_id": "slow"})
         assert first["code"] == "deadline_exceeded" and first["status"] == 504
         for _ in range(120):
@@ -313,22 +232,38 @@ def test_deadline_answers_from_the_last_good_chunk():
         item = reply[1]["tether"][0]
         assert item["deadline_exceeded"] is True and item["action_source"] == "last_good"
         assert reply[0]["action"].shape == (1, CHUNK, DIM)
-    finally:
-        c.close()
-        assert proc.stop() == 0, proc.stderr_tail()
+
+
+def test_reset_ends_the_episode():
+    # With the similarity skip on, a repeated observation is answered from the episode's cached chunk; after reset the
+    # episode starts from nothing, so the model runs again.
+    with served(["--gr00t-port", "0", "--action-similarity-threshold", "0.01", "--max-similar-skips", "5"]) as proc, \
+            Gr00tClient(proc.transport_ports["gr00t"]) as c:
+
+        def source(episode: Optional[str]) -> str:
+            options = {"seed": 7} if episode is None else {"seed": 7, "episode_id": episode}
+            return c.get_action(nested_obs(), options)[1]["tether"][0]["action_source"]
+
+        assert [source("r1"), source("r1"), source("r2")] == ["model", "cache", "model"]
+        assert c.call("reset", {"options": {"episode_id": "r1"}}) == {}
+        assert source("r1") == "model" and source("r2") == "cache"  # only the named episode ended
+        assert c.call("reset", {"options": {"episode_id": ["r1", "r2"]}}) == {}
+        assert source("r1") == "model" and source("r2") == "model"
+        # Without an episode_id, reset ends the default episode, the one get_action without one uses.
+        assert [source(None), source(None)] == ["model", "cache"]
+        assert c.call("reset", {"options": None}) == {}
+        assert source(None) == "model" and source("r1") == "cache"
+        err = c.call("reset", {"options": {"episode_id": 5}})
+        assert err["code"] == "invalid_field" and "episode_id" in err["error"]
 
 
 def test_breaker_opens(tmp_path):
     fault = tmp_path / "fail-now"
-    proc = ServeProcess(["--gr00t-port", "0", "--max-consecutive-crashes", "2", "--inject-failure-file", str(fault)])
-    c = Gr00tClient(proc.transport_ports["gr00t"])
-    try:
+    with served(["--gr00t-port", "0", "--max-consecutive-crashes", "2", "--inject-failure-file", str(fault)]) as proc, \
+            Gr00tClient(proc.transport_ports["gr00t"]) as c:
         fault.touch()  # after the warm-up
         for _ in range(2):
             assert c.get_action(nested_obs())["code"] == "inference_failed"
         err = c.get_action(nested_obs())
         assert err["code"] == "circuit_open" and err["status"] == 503
         assert metric(metrics_of(proc), "tether_requests_total", transport="gr00t", status="503") == 1
-    finally:
-        c.close()
-        assert proc.stop() == 0, proc.stderr_tail()

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import json
 import struct
+import subprocess
 import time
 from pathlib import Path
 from typing import Any, Dict, List, Optional, Tuple
@@ -434,6 +435,24 @@ def test_traces_record_the_transport(server, record_dir):
     assert all(l["transport"] == "kserve" for l in lines if l["request_id"].startswith("kserve-"))
     # /act requests on the same server are traced as http.
     assert any(l["transport"] == "http" for l in lines)
+
+
+def test_requests_refused_while_decoding_are_traced(server, record_dir):
+    v2_error(post_v2(server, b"{oops", {"X-Tether-Request-ID": "kserve-undecodable"}), 400, "JSON")
+    deadline = time.monotonic() + 10
+    while True:
+        lines = [json.loads(l) for f in sorted(record_dir.glob("trace-*.jsonl")) for l in f.read_text().splitlines()]
+        mine = [l for l in lines if l["request_id"] == "kserve-undecodable"]
+        if mine or time.monotonic() > deadline:
+            break
+        time.sleep(0.1)
+    assert len(mine) == 1, [l["request_id"] for l in lines]
+    assert mine[0]["transport"] == "kserve" and mine[0]["status"] == "failed" and mine[0]["http_status"] == 400
+    assert mine[0]["error"]["code"] == "bad_json"
+    # The line extends the hash chain: every earlier line is intact.
+    verify = subprocess.run([str(binary_path()), "traces", "verify", "--dir", str(record_dir)], capture_output=True,
+                            text=True, timeout=60)
+    assert verify.returncode == 0, verify.stdout + verify.stderr
 
 
 def test_metrics_count_by_transport(server):

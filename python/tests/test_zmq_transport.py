@@ -1,12 +1,13 @@
 """Tether's own ZMQ transport (`tether serve --zmq-port`) through the real binary: msgpack requests with /act's fields
-over DEALER and REQ sockets, request ids matched by `id`, errors and framing garbage, limits, CURVE encryption, the
-API key, metrics, traces, the safety wedges, and TetherClient(transport="zmq")."""
+over DEALER and REQ sockets (zmq_clients.py), request ids matched by `id`, errors and framing garbage, limits, CURVE
+encryption, host names for --host (both ZMQ transports), the API key, metrics, traces, the safety wedges, and
+TetherClient(transport="zmq")."""
 
 from __future__ import annotations
 
-import json
+import subprocess
 import time
-from typing import Any, Dict, Optional
+from typing import Any, Dict
 
 import numpy as np
 import pytest
@@ -14,9 +15,10 @@ import pytest
 msgpack = pytest.importorskip("msgpack")
 zmq = pytest.importorskip("zmq")
 
-from serve_process import SAMPLE_PNG, ServeProcess, binary_path, metric, parse_metrics, request  # noqa: E402
+from serve_process import DEMO, binary_path, metric  # noqa: E402
 from test_serve_integration import STATE, act_body, check_actions, ok_json, post_act  # noqa: E402
 from tether_client import AuthenticationError, InvalidRequestError, TetherClient  # noqa: E402
+from zmq_clients import PNG, Dealer, Gr00tClient, act_msg, connect, metrics_of, served, trace_lines  # noqa: E402
 
 pytestmark = [
     pytest.mark.integration,
@@ -24,55 +26,18 @@ pytestmark = [
 ]
 
 CHUNK, DIM = 50, 6
-PNG = SAMPLE_PNG.read_bytes()
-
-
-def act_msg(**fields: Any) -> Dict[str, Any]:
-    msg: Dict[str, Any] = {"instruction": "pick up the red cube", "state": STATE, "image": PNG, "seed": 7}
-    msg.update(fields)
-    return {k: v for k, v in msg.items() if v is not None}
-
-
-class Dealer:
-    def __init__(self, port: int, server_key: Optional[bytes] = None, timeout_ms: int = 30000) -> None:
-        self.socket = zmq.Context.instance().socket(zmq.DEALER)
-        self.socket.setsockopt(zmq.LINGER, 0)
-        self.socket.setsockopt(zmq.RCVTIMEO, timeout_ms)
-        if server_key:
-            self.socket.curve_publickey, self.socket.curve_secretkey = zmq.curve_keypair()
-            self.socket.curve_serverkey = server_key
-        self.socket.connect(f"tcp://127.0.0.1:{port}")
-
-    def send(self, msg: Dict[str, Any]) -> None:
-        self.socket.send(msgpack.packb(msg))
-
-    def recv(self) -> Dict[str, Any]:
-        return msgpack.unpackb(self.socket.recv_multipart()[-1])
-
-    def act(self, **fields: Any) -> Dict[str, Any]:
-        self.send(act_msg(**fields))
-        return self.recv()
-
-    def close(self) -> None:
-        self.socket.close(0)
-
-
-def metrics_of(server: ServeProcess) -> Dict:
-    return parse_metrics(request(server.port, "GET", "/metrics")[2].decode())
 
 
 @pytest.fixture(scope="module")
 def zserver():
-    proc = ServeProcess(["--zmq-port", "0"])
-    yield proc
-    assert proc.stop() == 0, proc.stderr_tail()
+    with served(["--zmq-port", "0"]) as proc:
+        yield proc
 
 
 @pytest.fixture
 def dealer(zserver):
-    d = Dealer(zserver.transport_ports["zmq"])
-    yield d
-    d.close()
+    with Dealer(zserver.transport_ports["zmq"]) as d:
+        yield d
 
 
 def test_act_matches_http_and_echoes_id(zserver, dealer):
@@ -94,10 +59,7 @@ def test_raw_image_and_pipelined_requests_match_by_id(dealer):
 
 
 def test_req_socket_and_errors(zserver):
-    req = zmq.Context.instance().socket(zmq.REQ)
-    req.setsockopt(zmq.LINGER, 0)
-    req.setsockopt(zmq.RCVTIMEO, 30000)
-    req.connect(f"tcp://127.0.0.1:{zserver.transport_ports['zmq']}")
+    req = connect(zmq.REQ, zserver.transport_ports["zmq"])
     try:
         def ask(raw: bytes) -> Dict[str, Any]:
             req.send(raw)
@@ -127,64 +89,72 @@ def test_multipart_garbage(zserver, dealer):
 
 
 def test_limits():
-    proc = ServeProcess(["--zmq-port", "0", "--zmq-max-message-bytes", "100000", "--max-body-bytes", "20000"])
-    try:
+    with served(["--zmq-port", "0", "--zmq-max-message-bytes", "100000", "--max-body-bytes", "20000"]) as proc:
         port = proc.transport_ports["zmq"]
-        d = Dealer(port, timeout_ms=1500)
-        d.send(act_msg(pad=b"x" * 200000))  # above ZMQ_MAXMSGSIZE: libzmq drops the peer, no answer
-        with pytest.raises(zmq.Again):
-            d.recv()
-        d.close()
-        d = Dealer(port)
-        reply = d.act(image=None, images={"front": {"data": b"\x80" * (100 * 100 * 3), "shape": [100, 100, 3]}})
-        assert reply["status"] == 413 and reply["error"]["code"] == "body_too_large"
-        assert d.act(image={"data": b"\x80" * 12, "shape": [2, 2, 3]})["status"] == 200
-        d.close()
-    finally:
-        assert proc.stop() == 0, proc.stderr_tail()
+        with Dealer(port, timeout_ms=1500) as d:
+            d.send(act_msg(pad=b"x" * 200000))  # above ZMQ_MAXMSGSIZE: libzmq drops the peer, no answer
+            with pytest.raises(zmq.Again):
+                d.recv()
+        with Dealer(port) as d:
+            reply = d.act(image=None, images={"front": {"data": b"\x80" * (100 * 100 * 3), "shape": [100, 100, 3]}})
+            assert reply["status"] == 413 and reply["error"]["code"] == "body_too_large"
+            assert d.act(image={"data": b"\x80" * 12, "shape": [2, 2, 3]})["status"] == 200
 
 
 def test_curve_encryption(tmp_path):
     public, secret = zmq.curve_keypair()
     key_file = tmp_path / "server.key"
     key_file.write_bytes(secret + b"\n")
-    proc = ServeProcess(["--zmq-port", "0", "--zmq-curve-secret-file", str(key_file)])
-    try:
+    with served(["--zmq-port", "0", "--zmq-curve-secret-file", str(key_file)]) as proc:
         assert f"zmq CURVE public key {public.decode()}" in proc.stderr_tail()
         port = proc.transport_ports["zmq"]
-        d = Dealer(port, server_key=public)
-        assert d.act()["status"] == 200
-        d.close()
-        plain = Dealer(port, timeout_ms=1500)  # without CURVE: the handshake fails, nothing is answered
-        plain.send(act_msg())
-        with pytest.raises(zmq.Again):
-            plain.recv()
-        plain.close()
+        with Dealer(port, server_key=public) as d:
+            assert d.act()["status"] == 200
+        with Dealer(port, timeout_ms=1500) as plain:  # without CURVE: the handshake fails, nothing is answered
+            plain.send(act_msg())
+            with pytest.raises(zmq.Again):
+                plain.recv()
         with TetherClient(proc.url, transport="zmq", zmq_url=f"tcp://127.0.0.1:{port}",
                           zmq_server_key=public.decode()) as client:
             assert client.act(PNG, state=STATE, instruction="pick", seed=1).actions.shape == (CHUNK, DIM)
-    finally:
-        assert proc.stop() == 0, proc.stderr_tail()
+
+
+def start_failure(*args: str) -> subprocess.CompletedProcess:
+    return subprocess.run([str(binary_path()), "serve", str(DEMO), "--port", "0", *args], capture_output=True,
+                          text=True, timeout=60)
 
 
 def test_bad_curve_key_fails_at_start(tmp_path):
     bad = tmp_path / "bad.key"
     bad.write_text("not-a-key")
-    import subprocess
-    from serve_process import DEMO
-    proc = subprocess.run([str(binary_path()), "serve", str(DEMO), "--port", "0", "--zmq-port", "0",
-                           "--zmq-curve-secret-file", str(bad)], capture_output=True, text=True, timeout=60)
+    proc = start_failure("--zmq-port", "0", "--zmq-curve-secret-file", str(bad))
     assert proc.returncode != 0 and "CURVE" in proc.stderr
 
 
+def test_host_name_is_resolved_for_both_zmq_transports():
+    # libzmq binds numeric addresses only: the server resolves the name and binds each of its addresses.
+    with served(["--host", "localhost", "--zmq-port", "0", "--gr00t-port", "0"]) as proc:
+        for name in ("zmq", "gr00t"):
+            assert any(line.startswith(f"tether serve: {name} listening on localhost:") for line in proc.stdout_seen)
+        with Dealer(proc.transport_ports["zmq"], host="localhost") as d:
+            assert d.act()["status"] == 200
+        with Gr00tClient(proc.transport_ports["gr00t"], host="127.0.0.1") as c:
+            assert c.call("ping", requires_input=False)["status"] == "ok"
+
+
+def test_unresolvable_host_is_a_usage_error():
+    proc = start_failure("--host", "no-such-host.invalid", "--zmq-port", "0", "--gr00t-port", "0")
+    assert proc.returncode == 2, proc.stderr
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1 and "no-such-host.invalid" in lines[0], proc.stderr
+
+
 def test_api_key_client_and_metrics():
-    proc = ServeProcess(["--zmq-port", "0"], env={"TETHER_API_KEY": "sesame"})
-    try:
+    with served(["--zmq-port", "0"], env={"TETHER_API_KEY": "sesame"}) as proc:
         port = proc.transport_ports["zmq"]
-        d = Dealer(port)
-        assert d.act()["error"]["code"] == "unauthorized"
-        assert d.act(api_key="sesame")["status"] == 200
-        d.close()
+        with Dealer(port) as d:
+            assert d.act()["error"]["code"] == "unauthorized"
+            assert d.act(api_key="sesame")["status"] == 200
         url = f"tcp://127.0.0.1:{port}"
         with TetherClient(proc.url, api_key="sesame", transport="zmq", zmq_url=url) as client:
             result = client.act(PNG, state=STATE, instruction="pick", seed=7, request_id="zmq-client-1")
@@ -201,31 +171,27 @@ def test_api_key_client_and_metrics():
         assert metric(m, "tether_requests_total", transport="zmq", endpoint="/act", status="200") == 2
         assert metric(m, "tether_requests_total", transport="zmq", status="401") == 2
         assert metric(m, "tether_requests_total", transport="zmq", status="400") == 1
-    finally:
-        assert proc.stop() == 0, proc.stderr_tail()
 
 
 def test_guard_traces_deadline_breaker(tmp_path):
     record = tmp_path / "traces"
-    proc = ServeProcess(["--zmq-port", "0", "--embodiment", "so100", "--record", str(record)])
-    d = Dealer(proc.transport_ports["zmq"])
-    try:
+    with served(["--zmq-port", "0", "--embodiment", "so100", "--record", str(record)]) as proc, \
+            Dealer(proc.transport_ports["zmq"]) as d:
         reply = d.act(episode_id="z1")
         a = np.asarray(reply["actions"])
         assert np.all(a[:, :5] >= -100) and np.all(a[:, :5] <= 100) and np.all(a[:, 5] >= 0) and np.all(a[:, 5] <= 100)
         assert "guard_clamped" in reply and reply["joint_names"][0] == "shoulder_pan"
         assert d.act(state=[0.0])["status"] == 400
-    finally:
-        d.close()
-        assert proc.stop() == 0, proc.stderr_tail()
-    lines = [json.loads(line) for f in sorted(record.glob("trace-*.jsonl")) for line in f.read_text().splitlines()]
-    assert len(lines) == 2 and all(line["transport"] == "zmq" for line in lines)
+        d.socket.send(b"\xc1")  # not msgpack: refused while decoding, traced too
+        assert d.recv()["error"]["code"] == "bad_msgpack"
+        assert metric(metrics_of(proc), "tether_requests_total", transport="zmq", status="400") == 2
+    lines = trace_lines(record)
+    assert len(lines) == 3 and all(line["transport"] == "zmq" for line in lines)
     assert lines[0]["episode_id"] == "z1"
+    assert lines[2]["status"] == "failed" and lines[2]["error"]["code"] == "bad_msgpack"
 
-    proc = ServeProcess(["--zmq-port", "0", "--inject-latency-ms", "600", "--deadline-ms", "150",
-                         "--request-timeout-ms", "5000"])
-    d = Dealer(proc.transport_ports["zmq"])
-    try:
+    with served(["--zmq-port", "0", "--inject-latency-ms", "600", "--deadline-ms", "150",
+                 "--request-timeout-ms", "5000"]) as proc, Dealer(proc.transport_ports["zmq"]) as d:
         first = d.act(episode_id="slow")
         assert first["status"] == 504 and first["error"]["code"] == "deadline_exceeded"
         for _ in range(120):
@@ -236,20 +202,13 @@ def test_guard_traces_deadline_breaker(tmp_path):
         else:
             raise AssertionError("the late forward pass never became the last good chunk")
         assert reply["deadline_exceeded"] is True and reply["action_source"] == "last_good"
-    finally:
-        d.close()
-        assert proc.stop() == 0, proc.stderr_tail()
 
     fault = tmp_path / "fail-now"
-    proc = ServeProcess(["--zmq-port", "0", "--max-consecutive-crashes", "2", "--inject-failure-file", str(fault)])
-    d = Dealer(proc.transport_ports["zmq"])
-    try:
+    with served(["--zmq-port", "0", "--max-consecutive-crashes", "2", "--inject-failure-file", str(fault)]) as proc, \
+            Dealer(proc.transport_ports["zmq"]) as d:
         fault.touch()
         for _ in range(2):
             assert d.act()["error"]["code"] == "inference_failed"
         reply = d.act()
         assert reply["status"] == 503 and reply["error"]["code"] == "circuit_open" and reply["retry_after_s"] >= 1
         assert metric(metrics_of(proc), "tether_requests_total", transport="zmq", status="503") == 1
-    finally:
-        d.close()
-        assert proc.stop() == 0, proc.stderr_tail()

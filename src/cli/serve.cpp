@@ -34,7 +34,8 @@ std::string read_api_key(const ServeFlags& flags) {
 
 void add_serve_flags(CLI::App* sub, ServeFlags& f) {
   auto& o = f.options;
-  sub->add_option("--host", o.host, "Address to listen on (0.0.0.0 for every interface)")->capture_default_str();
+  sub->add_option("--host", o.host, "Address or host name to listen on (0.0.0.0 for every interface)")
+      ->capture_default_str();
   sub->add_option("--port", o.port, "TCP port; 0 picks a free one")->capture_default_str();
   sub->add_option("--api-key-file", f.api_key_file,
                   "File holding the API key /act and /config require (else env TETHER_API_KEY; unset: open)");

@@ -45,6 +45,13 @@ struct ModelOutput {
   double flops = 0;  // matrix-product flops of this forward pass (2 per multiply-add), as the blocks count them
 };
 
+// A named part of the state or action vector, as a family's modality config names it (GR00T: "left_arm", "gripper",
+// ...). The groups of one kind, in order, concatenate to the whole vector.
+struct ModalityGroup {
+  std::string name;
+  int64_t dim = 0;
+};
+
 struct ModelSpec {
   std::string family;                // the family descriptor's name
   std::vector<std::string> cameras;  // camera keys in model order, as the checkpoint names them
@@ -58,6 +65,10 @@ struct ModelSpec {
   std::string tokenizer_source;     // the file its vocabulary was read from (tokenizer.json or tokenizer.model)
   std::string state_key, action_key;  // the feature keys the normaliser knows them by
   int64_t state_dim = 0, action_dim = 0, chunk_size = 0, num_steps = 0;
+  // The state and action vectors as named groups in concatenation order; their dims add up to state_dim and
+  // action_dim. A lerobot checkpoint has one of each (single_groups). Empty on a spec built by hand: read through
+  // state_groups() / action_groups(), which give the single groups then.
+  std::vector<ModalityGroup> state_groups, action_groups;
   int64_t max_state_dim = 0, max_action_dim = 0;
   int64_t image_height = 0, image_width = 0;  // what the vision tower receives
   std::string weights_dtype;                   // as stored in the checkpoint
@@ -118,6 +129,13 @@ class Model {
 // The camera key `name` stands for: the key itself, or the key without spec.camera_prefix; nullopt when the model
 // has no such camera.
 std::optional<std::string> find_camera(const ModelSpec& spec, const std::string& name);
+
+// One state group and one action group covering the whole vectors, named after the feature keys without
+// "observation." ("observation.state" -> "state", "action" -> "action"): what a lerobot checkpoint has.
+void set_single_groups(ModelSpec& spec);
+// The spec's groups, or its single groups when it lists none.
+std::vector<ModalityGroup> state_groups(const ModelSpec& spec);
+std::vector<ModalityGroup> action_groups(const ModelSpec& spec);
 
 // Standard-normal noise from a seed: the same seed gives the same noise on every platform (explicit
 // Box-Muller over a 64-bit Mersenne Twister, not std::normal_distribution, whose algorithm varies).

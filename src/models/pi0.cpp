@@ -333,6 +333,7 @@ PiZero::PiZero(const fs::path& dir, const Json& config, TensorStore store, const
   if (spec_.action_dim > spec_.max_action_dim)
     throw Error(ErrorCode::format, where + ": the action has " + std::to_string(spec_.action_dim) +
                                        " values, more than max_action_dim " + std::to_string(spec_.max_action_dim));
+  set_single_groups(spec_);
 
   if (pz_.prompt == PiZeroOptions::Prompt::lerobot) {
     tok_settings_ = read_tokenizer_settings(dir, config, pi05 ? 200 : 48);

@@ -64,6 +64,27 @@ std::optional<std::string> find_camera(const ModelSpec& spec, const std::string&
   return std::nullopt;
 }
 
+void set_single_groups(ModelSpec& spec) {
+  std::string state = spec.state_key.empty() ? "observation.state" : spec.state_key;
+  if (state.rfind("observation.", 0) == 0) state = state.substr(12);
+  spec.state_groups = {{state.empty() ? "state" : state, spec.state_dim}};
+  spec.action_groups = {{spec.action_key.empty() ? "action" : spec.action_key, spec.action_dim}};
+}
+
+std::vector<ModalityGroup> state_groups(const ModelSpec& spec) {
+  if (!spec.state_groups.empty()) return spec.state_groups;
+  ModelSpec single = spec;
+  set_single_groups(single);
+  return single.state_groups;
+}
+
+std::vector<ModalityGroup> action_groups(const ModelSpec& spec) {
+  if (!spec.action_groups.empty()) return spec.action_groups;
+  ModelSpec single = spec;
+  set_single_groups(single);
+  return single.action_groups;
+}
+
 CheckpointProbe probe_checkpoint(const fs::path& dir) {
   CheckpointProbe p{dir, Json(nullptr)};
   if (fs::is_regular_file(dir / "config.json")) p.config = read_json_file((dir / "config.json").string());

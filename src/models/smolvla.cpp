@@ -163,6 +163,7 @@ SmolVLA::SmolVLA(const fs::path& dir, const Json& config, TensorStore weights, c
   }
   if (spec_.cameras.empty()) throw Error(ErrorCode::format, where + ": input_features has no VISUAL feature");
   if (spec_.action_dim == 0) throw Error(ErrorCode::format, where + ": output_features has no ACTION feature");
+  set_single_groups(spec_);
 
   spec_.chunk_size = json_get_or<int64_t>(config, "chunk_size", 50, where);
   spec_.num_steps = json_get_or<int64_t>(config, "num_steps", 10, where);

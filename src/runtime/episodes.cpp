@@ -39,6 +39,11 @@ std::shared_ptr<Episode> EpisodeStore::get(const std::string& id) {
   return slot;
 }
 
+bool EpisodeStore::end(const std::string& id) {
+  std::lock_guard lock(mu_);
+  return episodes_.erase(id) > 0;
+}
+
 std::size_t EpisodeStore::size() const {
   std::lock_guard lock(mu_);
   return episodes_.size();

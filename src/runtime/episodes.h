@@ -56,6 +56,9 @@ class EpisodeStore {
   explicit EpisodeStore(std::size_t max_episodes = 1024) : max_(max_episodes) {}
   // Requests without an id share the episode "" (one robot per server).
   std::shared_ptr<Episode> get(const std::string& id);
+  // Forgets episode `id`: its next request starts from nothing (no last good chunk, guard history or skip cache).
+  // A request still holding it finishes against the old state, which does not carry over. False when it had none.
+  bool end(const std::string& id);
   std::size_t size() const;
 
  private:

@@ -80,6 +80,11 @@ struct ActPipeline::Inference {
   bool has_deadline = false;
 };
 
+ActInput refused_input(std::size_t wire_bytes, std::exception_ptr error) {
+  return {wire_bytes, [error](const models::ModelSpec&) -> ActRequest { std::rethrow_exception(error); },
+          [](const ActRequest& r) { return act_request_json(r); }};
+}
+
 ActPipeline::ActPipeline(const ServerOptions& options, ModelHost& host, Metrics& metrics)
     : opts_(options), host_(host), metrics_(metrics) {
   const auto& w = opts_.wedges;

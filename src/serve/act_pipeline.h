@@ -8,6 +8,7 @@
 #include <boost/asio/awaitable.hpp>
 #include <boost/asio/thread_pool.hpp>
 #include <chrono>
+#include <exception>
 #include <functional>
 #include <memory>
 #include <string>
@@ -46,6 +47,11 @@ struct ActInput {
   // transports re-encode what they decoded (act_request_json).
   std::function<std::string(const ActRequest&)> act_json;
 };
+
+// A request its transport refused while decoding its wire format, before it could become ActInputs of its own (a body
+// that is not JSON, a bad binary header): the pipeline refuses it at its decoding step with `error`, so it is counted
+// and leaves a trace line naming its transport, as a request whose ActInput::decode throws does.
+ActInput refused_input(std::size_t wire_bytes, std::exception_ptr error);
 
 // The answer in transport-neutral form. HTTP sends `status` as the status line and `body` as JSON, with
 // Retry-After: `retry_after_s` on a 503.

@@ -128,6 +128,24 @@ const msgpack::Value* option(const Call& call, const char* name, int64_t index, 
   return &v->items[std::size_t(index)];
 }
 
+// "'a' (3 values), 'b' (2 values)", for errors.
+std::string groups_text(const std::vector<models::ModalityGroup>& groups) {
+  std::string out;
+  for (const auto& g : groups)
+    out += (out.empty() ? "'" : ", '") + g.name + "' (" + std::to_string(g.dim) + " values)";
+  return out;
+}
+
+// The group a wire name stands for, or groups.size(). A model with one state group also takes it under its feature
+// key ("observation.state").
+std::size_t group_index(const std::vector<models::ModalityGroup>& groups, const std::string& name,
+                        const models::ModelSpec& spec) {
+  for (std::size_t g = 0; g < groups.size(); ++g)
+    if (groups[g].name == name) return g;
+  if (groups.size() == 1 && !spec.state_key.empty() && name == spec.state_key) return 0;
+  return groups.size();
+}
+
 void write_modality(msgpack::Writer& w, const std::vector<int64_t>& delta, const std::vector<std::string>& keys) {
   w.map(2);
   w.str("__ModalityConfig_class__");
@@ -232,15 +250,28 @@ ActRequest decode_item(const Call& call, int64_t index, const models::ModelSpec&
     const std::size_t offset = (std::size_t(index) * std::size_t(frames) + std::size_t(frames - 1)) * frame_bytes;
     o.images[*camera] = raw_rgb_image(reinterpret_cast<const uint8_t*>(a.data.data()) + offset, h, w, field);
   }
-  const std::string group = state_group(spec);
-  if (f.state.empty())
-    fail("missing_field", "observation.state." + group + " is required (" +
-                              std::to_string(spec.state_dim) + " values)");
-  for (const auto& [name, v] : f.state) {
+  // The state groups are concatenated in the spec's order, each one checked for its own size.
+  const std::vector<models::ModalityGroup> groups = models::state_groups(spec);
+  std::vector<const std::pair<std::string, const msgpack::Value*>*> given(groups.size(), nullptr);
+  for (const auto& entry : f.state) {
+    const std::size_t g = group_index(groups, entry.first, spec);
+    if (g == groups.size())
+      fail("unknown_field", "observation.state." + entry.first + ": unknown state group (the model has: " +
+                                groups_text(groups) + ")");
+    if (given[g])
+      fail("invalid_field",
+           "observation.state." + entry.first + ": state group '" + groups[g].name + "' is given twice");
+    given[g] = &entry;
+  }
+  for (std::size_t g = 0; g < groups.size(); ++g) {
+    if (given[g]) continue;
+    const std::string listing = groups.size() > 1 ? "; the model's state groups: " + groups_text(groups) : "";
+    fail("missing_field", "observation.state." + groups[g].name + " is required (" + std::to_string(groups[g].dim) +
+                              " values" + listing + ")");
+  }
+  for (std::size_t g = 0; g < groups.size(); ++g) {
+    const auto& [name, v] = *given[g];
     const std::string field = "observation.state." + name;
-    if (name != group && name != spec.state_key)
-      fail("unknown_field", field + ": unknown state group (the model has one: '" + group + "', " +
-                                std::to_string(spec.state_dim) + " values)");
     const NdArray a = ndarray(*v, field);
     if (a.dtype == DType::boolean) fail("invalid_field", field + ": expected float32 values, got bool");
     if (a.shape.size() != 3 && a.shape.size() != 2)
@@ -249,8 +280,9 @@ ActRequest decode_item(const Call& call, int64_t index, const models::ModelSpec&
     const int64_t steps = a.shape.size() == 3 ? a.shape[1] : 1;
     const int64_t dim = a.shape.back();
     if (steps < 1) fail("invalid_field", field + ": no time step");
-    if (dim != spec.state_dim)
-      fail("invalid_state", field + " has " + std::to_string(dim) + " values, the model expects " + std::to_string(spec.state_dim));
+    if (dim != groups[g].dim)
+      fail("invalid_state", field + " has " + std::to_string(dim) + " values, the model expects " +
+                                std::to_string(groups[g].dim));
     if (index >= batch) fail("invalid_field", field + ": no batch item " + std::to_string(index));
     std::vector<float> all;
     try {
@@ -259,7 +291,8 @@ ActRequest decode_item(const Call& call, int64_t index, const models::ModelSpec&
       fail("invalid_field", field + ": " + e.what());
     }
     const std::size_t start = (std::size_t(index) * std::size_t(steps) + std::size_t(steps - 1)) * std::size_t(dim);
-    o.state.assign(all.begin() + std::ptrdiff_t(start), all.begin() + std::ptrdiff_t(start + std::size_t(dim)));
+    const auto from = all.begin() + std::ptrdiff_t(start);
+    o.state.insert(o.state.end(), from, from + std::ptrdiff_t(dim));
   }
   if (batch < 1) batch = 1;
   if (!f.language) fail("missing_field", flat ? "observation.task is required (the instruction, one per batch item)"
@@ -277,14 +310,6 @@ ActRequest decode_item(const Call& call, int64_t index, const models::ModelSpec&
   check_observation(o, spec);
   return req;
 }
-
-std::string state_group(const models::ModelSpec& spec) {
-  std::string k = spec.state_key.empty() ? "observation.state" : spec.state_key;
-  if (starts_with(k, "observation.")) k = k.substr(12);
-  return k.empty() ? "state" : k;
-}
-
-std::string action_group(const models::ModelSpec& spec) { return spec.action_key.empty() ? "action" : spec.action_key; }
 
 std::string camera_name(const std::string& key, const models::ModelSpec& spec) {
   if (!spec.camera_prefix.empty() && starts_with(key, spec.camera_prefix)) return key.substr(spec.camera_prefix.size());
@@ -335,10 +360,22 @@ std::string modality_config_reply(const models::ModelSpec& spec, int64_t action_
   w.map(5);
   w.str("video");
   write_modality(w, {0}, cameras);
+  const auto state = models::state_groups(spec);
+  const auto action = action_groups_answered(spec, action_dim);
+  const auto names = [](const std::vector<models::ModalityGroup>& groups) {
+    std::vector<std::string> out;
+    for (const auto& g : groups) out.push_back(g.name);
+    return out;
+  };
+  const auto dims = [](const std::vector<models::ModalityGroup>& groups) {
+    Json out = Json::array();
+    for (const auto& g : groups) out.push_back({{"name", g.name}, {"dim", g.dim}});
+    return out;
+  };
   w.str("state");
-  write_modality(w, {0}, {state_group(spec)});
+  write_modality(w, {0}, names(state));
   w.str("action");
-  write_modality(w, horizon, {action_group(spec)});
+  write_modality(w, horizon, names(action));
   w.str("language");
   write_modality(w, {0}, {"task"});
   Json tether = {{"family", spec.family},
@@ -346,6 +383,8 @@ std::string modality_config_reply(const models::ModelSpec& spec, int64_t action_
                  {"camera_keys", spec.cameras},
                  {"state_dim", spec.state_dim},
                  {"action_dim", action_dim},
+                 {"state_groups", dims(state)},
+                 {"action_groups", dims(action)},
                  {"chunk_size", spec.chunk_size},
                  {"image_height", spec.image_height},
                  {"image_width", spec.image_width}};
@@ -362,14 +401,61 @@ void write_ndarray(msgpack::Writer& w, const std::string& npy) {
   w.bin(npy);
 }
 
-std::string action_reply(const std::string& group_key, int64_t batch, int64_t rows, int64_t dim,
-                         const std::vector<float>& actions, const Json& items) {
+std::vector<std::string> reset_episodes(const Call& call) {
+  if (!call.data.is_nil() && !call.data.is_map())
+    fail("invalid_field", "data: expected a map or null, got " + kind_of(call.data));
+  const msgpack::Value* options = call.data.is_map() ? call.data.find("options") : nullptr;
+  if (options && !options->is_nil() && !options->is_map())
+    fail("invalid_field", "data.options: expected a map or null, got " + kind_of(*options));
+  const msgpack::Value* id = options && options->is_map() ? options->find("episode_id") : nullptr;
+  if (!id || id->is_nil()) return {""};
+  if (id->is_str()) return {std::string(id->bytes)};
+  if (!id->is_array())
+    fail("invalid_field", "data.options.episode_id: expected a string or a list of strings, got " + kind_of(*id));
+  std::vector<std::string> ids;
+  for (std::size_t i = 0; i < id->items.size(); ++i) {
+    const msgpack::Value& item = id->items[i];
+    if (!item.is_str())
+      fail("invalid_field",
+           "data.options.episode_id[" + std::to_string(i) + "]: expected a string, got " + kind_of(item));
+    ids.emplace_back(item.bytes);
+  }
+  return ids;
+}
+
+std::vector<models::ModalityGroup> action_groups_answered(const models::ModelSpec& spec, int64_t action_dim) {
+  std::vector<models::ModalityGroup> groups = models::action_groups(spec);
+  // One group takes what the server answers, also when an embodiment cut the model's padded output to its joints.
+  if (groups.size() == 1) groups.front().dim = action_dim;
+  return groups;
+}
+
+std::string action_reply(const std::vector<models::ModalityGroup>& groups, bool flat, int64_t batch, int64_t rows,
+                         int64_t dim, const std::vector<float>& actions, const Json& items) {
+  int64_t total = 0;
+  for (const auto& g : groups) total += g.dim;
+  if (total != dim)
+    return error_reply(500, "internal_error", "the answer has " + std::to_string(dim) +
+                                                  " action values per step, the action groups add up to " +
+                                                  std::to_string(total));
   msgpack::Writer w;
   w.array(2);
-  w.map(1);
-  w.str(group_key);
-  write_ndarray(w, write_npy(DType::f32, {batch, rows, dim},
-                             std::string_view(reinterpret_cast<const char*>(actions.data()), actions.size() * sizeof(float))));
+  w.map(uint32_t(groups.size()));
+  int64_t column = 0;
+  std::vector<float> part;
+  for (const auto& g : groups) {
+    // Group g's columns of every (item, row).
+    part.clear();
+    part.reserve(std::size_t(batch * rows * g.dim));
+    for (int64_t r = 0; r < batch * rows; ++r) {
+      const auto from = actions.begin() + std::ptrdiff_t(r * dim + column);
+      part.insert(part.end(), from, from + std::ptrdiff_t(g.dim));
+    }
+    column += g.dim;
+    w.str(flat ? "action." + g.name : g.name);
+    const std::string_view bytes(reinterpret_cast<const char*>(part.data()), part.size() * sizeof(float));
+    write_ndarray(w, write_npy(DType::f32, {batch, rows, g.dim}, bytes));
+  }
   w.map(1);
   w.str("tether");
   msgpack::write_json(w, items);

@@ -39,15 +39,19 @@ struct Layout {
 Layout observation_layout(const Call& call);
 
 // Item `index` of get_action's batch as an ActRequest: the last frame of each video (B, T, H, W, 3) uint8, the last
-// row of the state group (B, T, D), the item's language instruction, and options.seed / options.episode_id (one value,
-// or a list with one per item). Throws HttpError(400, code) naming the field: missing_field, invalid_field,
-// invalid_state, unknown_camera, unknown_field.
+// row of each state group (B, T, D_g), concatenated in the spec's group order (models::state_groups), the item's
+// language instruction, and options.seed / options.episode_id (one value, or a list with one per item). Throws
+// HttpError(400, code) naming the field or group: missing_field, invalid_field, invalid_state, unknown_camera,
+// unknown_field.
 ActRequest decode_item(const Call& call, int64_t index, const models::ModelSpec& spec);
 
-// The state and action group names a lerobot checkpoint is served under: its feature keys without "observation."
-// ("observation.state" -> "state", "action" -> "action").
-std::string state_group(const models::ModelSpec& spec);
-std::string action_group(const models::ModelSpec& spec);
+// The episodes a reset call ends: data.options.episode_id (a string, or a list of strings), else the default episode
+// "" that get_action calls without an episode_id share. Throws HttpError(400, invalid_field).
+std::vector<std::string> reset_episodes(const Call& call);
+
+// The action groups a reply is split into (models::action_groups); a single group takes the `action_dim` the server
+// answers with (an embodiment may cut a padded output to its joints).
+std::vector<models::ModalityGroup> action_groups_answered(const models::ModelSpec& spec, int64_t action_dim);
 // A camera's name on the wire: the checkpoint's key without spec.camera_prefix.
 std::string camera_name(const std::string& key, const models::ModelSpec& spec);
 
@@ -58,11 +62,14 @@ std::string kill_reply();   // nil
 // {"error": message, "code": code, "status": status}: upstream's client raises on the "error" key.
 std::string error_reply(int status, const std::string& code, const std::string& message);
 // {video, state, action, language}: each a {"__ModalityConfig_class__": true, "as_json": {delta_indices,
-// modality_keys, ...}}, plus "tether": {cameras, state_dim, action_dim, chunk_size, ...} (a plain map).
+// modality_keys, ...}}, the state and action modality_keys being the groups in order, plus "tether": {cameras,
+// state_dim, action_dim, state_groups, action_groups ([{name, dim}]), chunk_size, ...} (a plain map).
 std::string modality_config_reply(const models::ModelSpec& spec, int64_t action_dim);
-// [ {group: float32 array (B, rows, dim)}, info ], `actions` holding B * rows * dim values; info is {"tether": items}.
-std::string action_reply(const std::string& group_key, int64_t batch, int64_t rows, int64_t dim,
-                         const std::vector<float>& actions, const Json& items);
+// [ {group: float32 array (B, rows, dim_g)} for each action group, info ]: `actions` (B * rows * dim values, dim the
+// sum of the groups' dims) split by column into the groups, keyed "action.<group>" when `flat`; info is
+// {"tether": items}. Groups that do not add up to `dim` give an internal_error reply instead.
+std::string action_reply(const std::vector<models::ModalityGroup>& groups, bool flat, int64_t batch, int64_t rows,
+                         int64_t dim, const std::vector<float>& actions, const Json& items);
 
 // {"__ndarray_class__": true, "as_npy": npy} for an array, as upstream's MsgSerializer writes numpy arrays.
 void write_ndarray(msgpack::Writer& w, const std::string& npy);

@@ -24,7 +24,7 @@ struct GetAction {
   std::string payload;  // the Call's views point into it
   gr00t::Call call;
   gr00t::Layout layout;
-  std::string action_key;
+  const ModelHost* host = nullptr;
   std::vector<ActInput> inputs;
   std::vector<RequestContext> contexts;
   std::vector<ActResponse> responses;
@@ -60,7 +60,9 @@ void finish(GetAction& g) {
     item.erase("actions");
     items.push_back(std::move(item));
   }
-  g.reply(gr00t::action_reply(g.action_key, batch, rows, dim, actions, items));
+  // Items answered: the model is loaded.
+  const auto groups = gr00t::action_groups_answered(g.host->engine().spec, dim);
+  g.reply(gr00t::action_reply(groups, g.layout.flat, batch, rows, dim, actions, items));
 }
 
 net::awaitable<void> run_item(std::shared_ptr<GetAction> g, ActPipeline* pipeline, std::size_t i) {
@@ -102,10 +104,7 @@ class Gr00tTransport final : public Transport {
     if (batch > kMaxItems)
       return g->reply(gr00t::error_reply(400, "invalid_field", "observation: a batch of " + std::to_string(batch) +
                                                                    " items; at most " + std::to_string(kMaxItems)));
-    if (ctx_.host.loaded()) {
-      const std::string group = gr00t::action_group(ctx_.host.engine().spec);
-      g->action_key = g->layout.flat ? "action." + group : group;
-    }
+    g->host = &ctx_.host;
     g->inputs.resize(std::size_t(batch));
     g->contexts.resize(std::size_t(batch));
     g->responses.resize(std::size_t(batch));
@@ -131,7 +130,10 @@ class Gr00tTransport final : public Transport {
     check_api_key(call.api_token, ctx_.options.api_key);
     switch (call.endpoint) {
       case gr00t::Endpoint::ping: return gr00t::ping_reply();
-      case gr00t::Endpoint::reset: return gr00t::reset_reply();
+      case gr00t::Endpoint::reset:
+        // The episode's last good chunk, guard history and skip cache go: its next get_action starts afresh.
+        for (const std::string& id : gr00t::reset_episodes(call)) ctx_.host.wedges().episodes().end(id);
+        return gr00t::reset_reply();
       case gr00t::Endpoint::get_modality_config:
         if (!ctx_.host.serving())
           throw HttpError(503, "not_ready", std::string("the model is not ready (") + health_state_name(ctx_.host.health()) + ")");

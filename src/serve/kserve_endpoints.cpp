@@ -198,19 +198,27 @@ void KServeEndpoints::prepare(const HttpRequest& req, const std::string& request
   if (req.body().size() > opts_.max_body_bytes)
     throw HttpError(413, "body_too_large",
                     "the request exceeds " + std::to_string(opts_.max_body_bytes) + " bytes (--max-body-bytes)");
-  const std::string encoding = header(req, "Content-Encoding");
-  if (!encoding.empty() && encoding != "identity")
-    throw HttpError(400, "invalid_field", "Content-Encoding '" + encoding + "' is not supported: send the body uncompressed");
-
-  prep.request = kserve::decode_infer_request(req.body(), header(req, "Inference-Header-Content-Length"),
-                                              host_.engine().spec);
-  const std::size_t n = prep.request.items.size();
   const RequestContext base = [&] {
     RequestContext c = act_context(req, request_id, received);
     c.transport = kTransport;
     c.endpoint = kserve_endpoint_label(req.target());
     return c;
   }();
+  try {
+    const std::string encoding = header(req, "Content-Encoding");
+    if (!encoding.empty() && encoding != "identity")
+      throw HttpError(400, "invalid_field",
+                      "Content-Encoding '" + encoding + "' is not supported: send the body uncompressed");
+    prep.request = kserve::decode_infer_request(req.body(), header(req, "Inference-Header-Content-Length"),
+                                                host_.engine().spec);
+  } catch (...) {
+    // Refused while decoding: one pipeline request that fails at its decoding step, so the refusal is counted and
+    // traced as any transport's is.
+    prep.inputs.push_back(refused_input(req.body().size(), std::current_exception()));
+    prep.contexts.push_back(base);
+    return;
+  }
+  const std::size_t n = prep.request.items.size();
   prep.contexts.assign(n, base);
   prep.inputs.reserve(n);
   for (std::size_t i = 0; i < n; ++i) {

@@ -43,7 +43,8 @@ class KServeEndpoints {
   // The GET endpoints' answers; throws HttpError.
   HttpResponse get(const HttpRequest& req, const std::string& request_id);
   // An infer request up to its items (method, model, key, readiness, decoding) into `out`, whose items the inputs
-  // point to; throws HttpError.
+  // point to; throws HttpError before decoding. A request refused while decoding becomes one input that the pipeline
+  // refuses (refused_input), so it is traced.
   void prepare(const HttpRequest& req, const std::string& request_id, std::chrono::steady_clock::time_point received,
                Prepared& out);
   // Runs the items through the pipeline, which counts each; never throws.

@@ -25,6 +25,8 @@ const char* kind_name(Kind k) {
   return "?";
 }
 
+Value::~Value() = default;
+
 double Value::as_double() const {
   switch (kind) {
     case Kind::integer: return above_int64 ? double(uinteger) : double(integer);

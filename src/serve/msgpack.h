@@ -36,6 +36,16 @@ struct Value {
   std::vector<Value> items;       // Kind::array
   std::vector<std::pair<Value, Value>> entries;  // Kind::map, in wire order
 
+  // The special members are spelled out and the destructor defined in msgpack.cpp: with the implicit ones, clang 14
+  // with libstdc++ 12 instantiates std::pair<Value, Value> while checking whether Value is default-constructible,
+  // needs Value's destructor for it and fails on the half-instantiated pair (the fuzz preset's build).
+  Value() = default;
+  Value(const Value&) = default;
+  Value(Value&&) noexcept = default;
+  Value& operator=(const Value&) = default;
+  Value& operator=(Value&&) noexcept = default;
+  ~Value();
+
   bool is_nil() const { return kind == Kind::nil; }
   bool is_map() const { return kind == Kind::map; }
   bool is_array() const { return kind == Kind::array; }

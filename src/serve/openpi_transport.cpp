@@ -12,6 +12,7 @@
 #include <mutex>
 
 #include "serve/auth.h"
+#include "serve/host_address.h"
 #include "serve/http_error.h"
 #include "serve/http_message.h"
 #include "serve/openpi_protocol.h"
@@ -429,14 +430,7 @@ uint16_t OpenpiTransport::start() {
   const auto& opts = s.opts();
   const std::string where = opts.host + ":" + std::to_string(*opts.openpi_port);
   boost::system::error_code ec;
-  auto address = net::ip::make_address(opts.host, ec);
-  if (ec) {
-    tcp::resolver resolver(s.ctx.ioc);
-    const auto results = resolver.resolve(opts.host, "", ec);
-    if (ec || results.empty()) throw Error(ErrorCode::io, "openpi: cannot resolve --host '" + opts.host + "'");
-    address = results.begin()->endpoint().address();
-  }
-  const tcp::endpoint endpoint(address, *opts.openpi_port);
+  const tcp::endpoint endpoint(net::ip::make_address(resolve_host(opts.host).front()), *opts.openpi_port);
   s.acceptor.open(endpoint.protocol(), ec);
   if (!ec) s.acceptor.set_option(net::socket_base::reuse_address(true), ec);
   if (!ec) s.acceptor.bind(endpoint, ec);

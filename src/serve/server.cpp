@@ -10,6 +10,7 @@
 
 #include "core/error.h"
 #include "serve/act_pipeline.h"
+#include "serve/host_address.h"
 #include "serve/http_session.h"
 #include "serve/metrics.h"
 #include "serve/router.h"
@@ -139,15 +140,8 @@ Server::~Server() {
 uint16_t Server::start() {
   auto& m = *impl_;
   boost::system::error_code ec;
-  auto address = net::ip::make_address(m.opts.host, ec);
-  if (ec) {  // a name such as "localhost": its first address
-    tcp::resolver resolver(m.ioc);
-    const auto results = resolver.resolve(m.opts.host, "", ec);
-    if (ec || results.empty())
-      throw Error(ErrorCode::invalid_argument, "--host '" + m.opts.host + "' is neither an IP address nor a known name");
-    address = results.begin()->endpoint().address();
-  }
-  const tcp::endpoint endpoint(address, m.opts.port);
+  // A name such as "localhost": its first address.
+  const tcp::endpoint endpoint(net::ip::make_address(resolve_host(m.opts.host).front()), m.opts.port);
   m.acceptor.open(endpoint.protocol(), ec);
   if (!ec) m.acceptor.set_option(net::socket_base::reuse_address(true), ec);
   if (!ec) m.acceptor.bind(endpoint, ec);

@@ -1,6 +1,7 @@
 // The ROUTER loop of the ZMQ transports: framing, limits, the reply queue and its wake-up socket.
 #include "serve/zmq_server.h"
 
+#include <algorithm>
 #include <boost/asio/post.hpp>
 #include <cctype>
 #include <cstdio>
@@ -12,6 +13,7 @@
 #include <zmq.hpp>
 
 #include "core/error.h"
+#include "serve/host_address.h"
 
 namespace tether::serve {
 
@@ -91,26 +93,43 @@ int ZmqServer::in_flight() const { return shared_->in_flight.load(); }
 
 uint16_t ZmqServer::start() {
   auto s = std::make_unique<Sockets>();
-  const bool v6 = opts_.host.find(':') != std::string::npos;
-  const std::string host = v6 ? "[" + opts_.host + "]" : opts_.host;
-  const std::string where = opts_.host + ":" + std::to_string(opts_.port);
+  // libzmq binds numeric addresses (or interface names) only: a name such as "localhost" is resolved here, and every
+  // address it has is bound, so a client reaches the socket whichever of them its own lookup picks (a ZMQ client
+  // without ZMQ_IPV6 connects over IPv4 only). The first one decides the port; failing to bind it is an error,
+  // failing to bind a further one a warning.
+  const std::vector<std::string> addresses = resolve_host(opts_.host);
+  const auto endpoint = [](const std::string& address, const std::string& port) {
+    const bool v6 = address.find(':') != std::string::npos;
+    return "tcp://" + (v6 ? "[" + address + "]" : address) + ":" + port;
+  };
+  const bool any_v6 = std::any_of(addresses.begin(), addresses.end(),
+                                  [](const std::string& a) { return a.find(':') != std::string::npos; });
   try {
     s->router.set(zmq::sockopt::linger, 500);  // replies already queued (a kill's answer) still go out on close
     s->router.set(zmq::sockopt::rcvhwm, 10000);
     s->router.set(zmq::sockopt::sndhwm, 10000);
-    if (v6) s->router.set(zmq::sockopt::ipv6, 1);
+    if (any_v6) s->router.set(zmq::sockopt::ipv6, 1);  // IPv4 addresses still bind with it
     if (opts_.max_message_bytes > 0) s->router.set(zmq::sockopt::maxmsgsize, int64_t(opts_.max_message_bytes));
     if (opts_.curve_secret_z85) {
       s->router.set(zmq::sockopt::curve_server, 1);
       s->router.set(zmq::sockopt::curve_secretkey, *opts_.curve_secret_z85);
     }
-    s->router.bind("tcp://" + host + ":" + (opts_.port == 0 ? std::string("*") : std::to_string(opts_.port)));
+    s->router.bind(endpoint(addresses.front(), opts_.port == 0 ? std::string("*") : std::to_string(opts_.port)));
   } catch (const zmq::error_t& e) {
-    throw Error(ErrorCode::io, opts_.name + ": cannot listen on " + where + ": " + e.what());
+    throw Error(ErrorCode::io, opts_.name + ": cannot listen on " + opts_.host + ":" + std::to_string(opts_.port) +
+                                   (addresses.front() == opts_.host ? "" : " (" + addresses.front() + ")") + ": " +
+                                   e.what());
   }
-  const std::string endpoint = s->router.get(zmq::sockopt::last_endpoint);
-  const auto colon = endpoint.rfind(':');
-  const uint16_t port = uint16_t(std::stoi(endpoint.substr(colon + 1)));
+  const std::string bound = s->router.get(zmq::sockopt::last_endpoint);
+  const uint16_t port = uint16_t(std::stoi(bound.substr(bound.rfind(':') + 1)));
+  for (std::size_t i = 1; i < addresses.size(); ++i) {
+    try {
+      s->router.bind(endpoint(addresses[i], std::to_string(port)));
+    } catch (const zmq::error_t& e) {
+      std::fprintf(stderr, "tether serve: %s: not also listening on %s (%s), port %u: %s\n", opts_.name.c_str(),
+                   addresses[i].c_str(), opts_.host.c_str(), unsigned(port), e.what());
+    }
+  }
 
   char address[64];
   std::snprintf(address, sizeof address, "inproc://tether-%s-wake-%p", opts_.name.c_str(), static_cast<void*>(this));

@@ -5,7 +5,6 @@
 #include <boost/asio/detached.hpp>
 #include <cstdio>
 
-#include "serve/http_error.h"
 #include "serve/request_id.h"
 #include "serve/zmq_protocol.h"
 #include "serve/zmq_server.h"
@@ -63,15 +62,18 @@ class ZmqTransport final : public Transport {
   void handle(std::string payload, std::chrono::steady_clock::time_point received, ZmqReply reply) {
     auto x = std::make_shared<Exchange>(std::move(reply));
     x->payload = std::move(payload);
+    Exchange* raw = x.get();
     try {
       x->request = zmqp::parse_request(x->payload);
-    } catch (const HttpError& e) {
-      return x->reply(zmqp::error_reply(e.status(), e.code(), e.what()));
+      x->input.wire_bytes = x->payload.size();
+      x->input.decode = [raw](const models::ModelSpec& spec) { return zmqp::decode_act(raw->request, spec); };
+      x->input.act_json = [](const ActRequest& r) { return act_request_json(r); };
+    } catch (...) {
+      // Not even the envelope reads (not msgpack, not a map): every message is an /act request, so the pipeline
+      // refuses this one at its decoding step and it is counted and traced like any other (after the API key check:
+      // a message whose key cannot be read is answered 401 when the server has one).
+      x->input = refused_input(x->payload.size(), std::current_exception());
     }
-    Exchange* raw = x.get();
-    x->input.wire_bytes = x->payload.size();
-    x->input.decode = [raw](const models::ModelSpec& spec) { return zmqp::decode_act(raw->request, spec); };
-    x->input.act_json = [](const ActRequest& r) { return act_request_json(r); };
     x->context.request_id = request_id_or_new({x->request.request_id});
     x->context.api_key = x->request.api_key;
     x->context.received = received;

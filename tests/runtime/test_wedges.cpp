@@ -138,6 +138,31 @@ TEST(Wedges, LateAnswersNeverReplaceNewerChunks) {
   EXPECT_FALSE(w.last_good(*w.episodes().get("other"), r));  // episodes do not share chunks
 }
 
+TEST(Wedges, AnEndedEpisodeStartsFromNothing) {
+  WedgeOptions o;
+  o.similarity_threshold = 0.05;
+  o.max_similar_skips = 2;
+  Wedges w(o);
+  w.bind_model(spec(), false);
+  const auto obs = observation(0.f, 100);
+  const std::vector<float> norm = {0.f, 0.f};
+  std::vector<float> chunk = {0, 0, 1, 1, 2, 2, 3, 3};
+  auto held = w.episodes().get("ep");
+  w.on_model_chunk(*held, chunk, SteadyClock::now(), &obs, norm);
+  w.on_model_chunk(*w.episodes().get("other"), chunk, SteadyClock::now(), &obs, norm);
+  EXPECT_TRUE(w.episodes().end("ep"));
+  EXPECT_FALSE(w.episodes().end("ep"));
+  auto fresh = w.episodes().get("ep");
+  WedgeReport r;
+  EXPECT_FALSE(w.last_good(*fresh, r));           // no last good chunk
+  EXPECT_FALSE(w.try_skip(*fresh, obs, norm, r));  // no skip cache
+  EXPECT_TRUE(fresh->state.last_sent.empty());     // no guard history
+  // A request still holding the old episode finishes against it; what it records does not reach the new one.
+  w.on_model_chunk(*held, chunk, SteadyClock::now(), &obs, norm);
+  EXPECT_FALSE(w.last_good(*w.episodes().get("ep"), r));
+  EXPECT_TRUE(w.last_good(*w.episodes().get("other"), r));  // other episodes are untouched
+}
+
 TEST(Wedges, LastGoodChunkIsAdvancedByElapsedSteps) {
   WedgeOptions o;
   o.control_rate_hz = 100;

@@ -1,8 +1,9 @@
-// GR00T's ZMQ protocol decoding and replies: both observation layouts, batches and histories, every refusal naming
-// its field, and replies in the shapes upstream's PolicyClient reads.
+// GR00T's ZMQ protocol decoding and replies: both observation layouts, batches and histories, state and action split
+// into the model's groups, every refusal naming its field, and replies in the shapes upstream's PolicyClient reads.
 #include <gtest/gtest.h>
 
 #include <cstring>
+#include <functional>
 
 #include "serve/gr00t_protocol.h"
 #include "serve/http_error.h"
@@ -46,8 +47,9 @@ struct Obs {
   int64_t batch = 1, frames = 1;
   bool flat = false;
   std::string camera = "front";
-  std::string group = "state";
-  int64_t state_dim = 3;
+  // State groups (name, dim) in the order they are sent. Item b, step t, value k of the concatenation is
+  // 100 * b + 10 * t + k.
+  std::vector<std::pair<std::string, int64_t>> state = {{"state", 3}};
   NpType video_dtype = NpType::u8;
 };
 
@@ -63,10 +65,18 @@ std::string request(const Obs& o, const std::string& token = "", bool with_optio
   w.str("data");
   w.map(with_options ? 2 : 1);
   w.str("observation");
-  std::vector<float> state;
-  for (int64_t b = 0; b < o.batch; ++b)
-    for (int64_t t = 0; t < o.frames; ++t)
-      for (int64_t d = 0; d < o.state_dim; ++d) state.push_back(float(100 * b + 10 * t + d));
+  auto state_groups = [&](const std::string& prefix) {
+    int64_t offset = 0;
+    for (const auto& [group, dim] : o.state) {
+      std::vector<float> values;
+      for (int64_t b = 0; b < o.batch; ++b)
+        for (int64_t t = 0; t < o.frames; ++t)
+          for (int64_t d = 0; d < dim; ++d) values.push_back(float(100 * b + 10 * t + offset + d));
+      w.str(prefix + group);
+      ndarray(w, NpType::f32, {o.batch, o.frames, dim}, floats(values));
+      offset += dim;
+    }
+  };
   auto language = [&] {
     w.array(uint32_t(o.batch));
     for (int64_t b = 0; b < o.batch; ++b) {
@@ -75,11 +85,10 @@ std::string request(const Obs& o, const std::string& token = "", bool with_optio
     }
   };
   if (o.flat) {
-    w.map(3);
+    w.map(uint32_t(2 + o.state.size()));
     w.str("video." + o.camera);
     ndarray(w, o.video_dtype, {o.batch, o.frames, 2, 2, 3}, video_bytes(o.batch, o.frames, 2, 2));
-    w.str("state." + o.group);
-    ndarray(w, NpType::f32, {o.batch, o.frames, o.state_dim}, floats(state));
+    state_groups("state.");
     w.str("task");
     w.array(uint32_t(o.batch));
     for (int64_t b = 0; b < o.batch; ++b) w.str("task " + std::to_string(b));
@@ -90,9 +99,8 @@ std::string request(const Obs& o, const std::string& token = "", bool with_optio
     w.str(o.camera);
     ndarray(w, o.video_dtype, {o.batch, o.frames, 2, 2, 3}, video_bytes(o.batch, o.frames, 2, 2));
     w.str("state");
-    w.map(1);
-    w.str(o.group);
-    ndarray(w, NpType::f32, {o.batch, o.frames, o.state_dim}, floats(state));
+    w.map(uint32_t(o.state.size()));
+    state_groups("");
     w.str("language");
     w.map(1);
     w.str("task");
@@ -110,10 +118,10 @@ std::string request(const Obs& o, const std::string& token = "", bool with_optio
   return w.take();
 }
 
-std::string code_of(const std::string& message, int64_t index = 0) {
+std::string code_of(const std::string& message, int64_t index = 0, const models::ModelSpec& model = spec()) {
   try {
     const gr00t::Call call = gr00t::parse_call(message);
-    gr00t::decode_item(call, index, spec());
+    gr00t::decode_item(call, index, model);
   } catch (const HttpError& e) {
     EXPECT_EQ(e.status(), 400);
     return e.code() + ": " + e.what();
@@ -195,10 +203,10 @@ TEST(Gr00tProtocol, Refusals) {
   o.camera = "top";
   EXPECT_NE(code_of(request(o)).find("unknown_camera: observation.video.top"), std::string::npos);
   o = Obs();
-  o.group = "joints";
+  o.state = {{"joints", 3}};
   EXPECT_NE(code_of(request(o)).find("unknown_field: observation.state.joints"), std::string::npos);
   o = Obs();
-  o.state_dim = 2;
+  o.state = {{"state", 2}};
   EXPECT_NE(code_of(request(o)).find("invalid_state"), std::string::npos);
   o = Obs();
   o.video_dtype = NpType::f32;
@@ -260,7 +268,8 @@ TEST(Gr00tProtocol, Replies) {
 
   std::vector<float> actions(2 * 4 * 3);
   for (std::size_t i = 0; i < actions.size(); ++i) actions[i] = float(i);
-  const std::string reply = gr00t::action_reply("action.action", 2, 4, 3, actions, Json::array({Json::object(), Json::object()}));
+  const std::string reply = gr00t::action_reply(gr00t::action_groups_answered(spec(), 3), true, 2, 4, 3, actions,
+                                                Json::array({Json::object(), Json::object()}));
   const mp::Value r = mp::parse(reply);
   ASSERT_TRUE(r.is_array());
   ASSERT_EQ(r.items.size(), 2u);
@@ -269,4 +278,169 @@ TEST(Gr00tProtocol, Replies) {
   EXPECT_EQ(a.shape, (std::vector<int64_t>{2, 4, 3}));
   EXPECT_EQ(to_float32(a), actions);
   EXPECT_TRUE(r.items[1].find("tether")->is_array());
+}
+
+namespace {
+
+// A GR00T-like spec: state = left_arm (2) + gripper (1), action = arm (2) + hand (1).
+models::ModelSpec two_group_spec() {
+  models::ModelSpec s = spec();
+  s.state_groups = {{"left_arm", 2}, {"gripper", 1}};
+  s.action_groups = {{"arm", 2}, {"hand", 1}};
+  return s;
+}
+
+}  // namespace
+
+TEST(Gr00tProtocol, LerobotSpecHasOneStateAndOneActionGroup) {
+  models::ModelSpec s = spec();
+  s.state_key = "observation.state";
+  models::set_single_groups(s);
+  ASSERT_EQ(s.state_groups.size(), 1u);
+  EXPECT_EQ(s.state_groups[0].name, "state");
+  EXPECT_EQ(s.state_groups[0].dim, 3);
+  ASSERT_EQ(s.action_groups.size(), 1u);
+  EXPECT_EQ(s.action_groups[0].name, "action");
+  // A spec built without groups reads as the same single groups.
+  EXPECT_EQ(models::state_groups(spec())[0].name, "state");
+  EXPECT_EQ(models::action_groups(spec())[0].dim, 3);
+  // The one group is also taken under its feature key.
+  Obs o;
+  o.state = {{"observation.state", 3}};
+  EXPECT_EQ(code_of(request(o), 0, s), "ok");
+}
+
+TEST(Gr00tProtocol, StateGroupsConcatenateInSpecOrder) {
+  const models::ModelSpec s = two_group_spec();
+  for (const bool flat : {false, true}) {
+    Obs o;
+    o.flat = flat;
+    o.batch = 2;
+    o.frames = 2;
+    // Sent in the other order: the spec's order decides the concatenation.
+    o.state = {{"gripper", 1}, {"left_arm", 2}};
+    const std::string msg = request(o);
+    const gr00t::Call call = gr00t::parse_call(msg);
+    for (int64_t b = 0; b < 2; ++b) {
+      const ActRequest r = gr00t::decode_item(call, b, s);
+      // gripper was sent first (offset 0), left_arm after it (offsets 1, 2); the last step is t = 1.
+      const float base = float(100 * b + 10);
+      EXPECT_EQ(r.observation.state, (std::vector<float>{base + 1, base + 2, base + 0})) << "flat " << flat;
+    }
+  }
+}
+
+TEST(Gr00tProtocol, StateGroupsAreCheckedOneByOne) {
+  const models::ModelSpec s = two_group_spec();
+  Obs o;
+  o.state = {{"left_arm", 2}};
+  EXPECT_NE(code_of(request(o), 0, s).find("missing_field: observation.state.gripper is required (1 values"),
+            std::string::npos)
+      << code_of(request(o), 0, s);
+  o.state = {{"left_arm", 2}, {"gripper", 1}, {"tail", 1}};
+  const std::string unknown = code_of(request(o), 0, s);
+  EXPECT_NE(unknown.find("unknown_field: observation.state.tail: unknown state group"), std::string::npos) << unknown;
+  EXPECT_NE(unknown.find("'left_arm' (2 values), 'gripper' (1 values)"), std::string::npos) << unknown;
+  o.state = {{"left_arm", 3}, {"gripper", 1}};
+  const std::string wrong_size = code_of(request(o), 0, s);
+  EXPECT_NE(wrong_size.find("invalid_state: observation.state.left_arm has 3 values, the model expects 2"),
+            std::string::npos)
+      << wrong_size;
+  // The single-group spelling means nothing to a model with several groups.
+  o.state = {{"state", 3}};
+  EXPECT_NE(code_of(request(o), 0, s).find("unknown_field: observation.state.state"), std::string::npos);
+}
+
+TEST(Gr00tProtocol, ActionReplySplitsIntoGroupsAndConfigListsThem) {
+  const models::ModelSpec s = two_group_spec();
+  std::vector<float> actions(2 * 4 * 3);
+  for (std::size_t i = 0; i < actions.size(); ++i) actions[i] = float(i);
+  const auto groups = gr00t::action_groups_answered(s, 3);
+  for (const bool flat : {false, true}) {
+    const std::string reply = gr00t::action_reply(groups, flat, 2, 4, 3, actions, Json::array());
+    const mp::Value r = mp::parse(reply);
+    ASSERT_TRUE(r.is_array());
+    ASSERT_EQ(r.items[0].entries.size(), 2u);
+    const NdArray arm = parse_npy(r.items[0].find(flat ? "action.arm" : "arm")->find("as_npy")->bytes);
+    const NdArray hand = parse_npy(r.items[0].find(flat ? "action.hand" : "hand")->find("as_npy")->bytes);
+    EXPECT_EQ(arm.shape, (std::vector<int64_t>{2, 4, 2}));
+    EXPECT_EQ(hand.shape, (std::vector<int64_t>{2, 4, 1}));
+    std::vector<float> want_arm, want_hand;
+    for (std::size_t row = 0; row < 8; ++row) {
+      want_arm.push_back(actions[row * 3]);
+      want_arm.push_back(actions[row * 3 + 1]);
+      want_hand.push_back(actions[row * 3 + 2]);
+    }
+    EXPECT_EQ(to_float32(arm), want_arm);
+    EXPECT_EQ(to_float32(hand), want_hand);
+  }
+  // Groups that do not add up to the answer's width: an internal error, never a misaligned split.
+  const mp::Value bad = mp::parse(gr00t::action_reply(groups, false, 1, 4, 2, std::vector<float>(8), Json::array()));
+  EXPECT_EQ(bad.find("code")->bytes, "internal_error");
+
+  const mp::Value c = mp::parse(gr00t::modality_config_reply(s, 3));
+  const mp::Value* state_keys = c.find("state")->find("as_json")->find("modality_keys");
+  ASSERT_EQ(state_keys->items.size(), 2u);
+  EXPECT_EQ(state_keys->items[0].bytes, "left_arm");
+  EXPECT_EQ(state_keys->items[1].bytes, "gripper");
+  const mp::Value* action_keys = c.find("action")->find("as_json")->find("modality_keys");
+  ASSERT_EQ(action_keys->items.size(), 2u);
+  EXPECT_EQ(action_keys->items[0].bytes, "arm");
+  const auto groups_of = [&](const char* key) {
+    std::vector<std::pair<std::string, int64_t>> out;
+    for (const auto& g : c.find("tether")->find(key)->items)
+      out.emplace_back(std::string(g.find("name")->bytes), g.find("dim")->integer);
+    return out;
+  };
+  using Groups = std::vector<std::pair<std::string, int64_t>>;
+  EXPECT_EQ(groups_of("state_groups"), (Groups{{"left_arm", 2}, {"gripper", 1}}));
+  EXPECT_EQ(groups_of("action_groups"), (Groups{{"arm", 2}, {"hand", 1}}));
+}
+
+TEST(Gr00tProtocol, ResetNamesTheEpisodesItEnds) {
+  const auto reset = [](const std::function<void(mp::Writer&)>& options) {
+    mp::Writer w;
+    w.map(2);
+    w.str("endpoint");
+    w.str("reset");
+    w.str("data");
+    w.map(1);
+    w.str("options");
+    options(w);
+    return w.take();
+  };
+  const auto episodes = [](const std::string& message) { return gr00t::reset_episodes(gr00t::parse_call(message)); };
+  using Ids = std::vector<std::string>;
+  EXPECT_EQ(episodes(reset([](mp::Writer& w) { w.nil(); })), Ids{""});  // the default episode
+  EXPECT_EQ(episodes(reset([](mp::Writer& w) { w.map(0); })), Ids{""});
+  EXPECT_EQ(episodes(reset([](mp::Writer& w) {
+              w.map(1);
+              w.str("episode_id");
+              w.str("ep7");
+            })),
+            Ids{"ep7"});
+  EXPECT_EQ(episodes(reset([](mp::Writer& w) {
+              w.map(1);
+              w.str("episode_id");
+              w.array(2);
+              w.str("a");
+              w.str("b");
+            })),
+            (Ids{"a", "b"}));
+  mp::Writer bare;
+  bare.map(1);
+  bare.str("endpoint");
+  bare.str("reset");
+  EXPECT_EQ(episodes(bare.take()), Ids{""});  // no data at all
+  try {
+    episodes(reset([](mp::Writer& w) {
+      w.map(1);
+      w.str("episode_id");
+      w.integer(3);
+    }));
+    FAIL();
+  } catch (const HttpError& e) {
+    EXPECT_EQ(e.code(), "invalid_field");
+    EXPECT_NE(std::string(e.what()).find("data.options.episode_id"), std::string::npos);
+  }
 }

@@ -1,13 +1,19 @@
 // The /v2 endpoints in-process with a fake engine: health and metadata, JSON and binary infer, a batch of two
-// sharing one forward pass, the model name and version, the API key, item errors and the transport's metrics.
+// sharing one forward pass, the model name and version, the API key, item errors, the transport's metrics and the
+// trace lines of requests refused while decoding.
 #include <gtest/gtest.h>
+
+#include <unistd.h>
 
 #include <atomic>
 #include <cstring>
+#include <filesystem>
+#include <fstream>
 #include <thread>
 
 #include "core/json_util.h"
 #include "http_test_client.h"
+#include "runtime/trace_reader.h"
 #include "serve/server.h"
 
 using namespace tether;
@@ -201,4 +207,66 @@ TEST(ServerKServeEndpoints, ErrorsInTheProtocolsForm) {
   const std::string metrics = http_get(s.port(), "/metrics").body;
   EXPECT_NE(metrics.find("transport=\"kserve\",endpoint=\"/v2/models/{name}/infer\",status=\"401\"} 1"), std::string::npos)
       << metrics;
+}
+
+TEST(ServerKServeEndpoints, RequestsRefusedWhileDecodingLeaveATraceLine) {
+  const auto dir = std::filesystem::temp_directory_path() / ("tether_kserve_trace_" + std::to_string(::getpid()));
+  std::filesystem::remove_all(dir);
+  ServerOptions o;
+  o.model_name = "demo";
+  runtime::TraceOptions t;
+  t.dir = dir.string();
+  t.fsync = runtime::TraceOptions::Fsync::every_line;
+  o.wedges.record = t;
+  using Headers = std::vector<std::pair<std::string, std::string>>;
+  const auto id = [](const std::string& v) { return Headers{{"X-Tether-Request-ID", v}}; };
+  {
+    V2Server s(o);
+    ASSERT_EQ(http_post(s.port(), "/v2/models/demo/infer", infer_json(1).dump(), id("good")).status, 200);
+    Json wrong_shape = infer_json(1);
+    wrong_shape["inputs"][1]["shape"] = {1, 3};
+    Json wrong_dtype = infer_json(1);
+    wrong_dtype["inputs"][1]["datatype"] = "FP64";
+    auto bad_header = id("bad-header");
+    bad_header.emplace_back("Inference-Header-Content-Length", "999");
+    for (const HttpReply& reply :
+         {http_post(s.port(), "/v2/models/demo/infer", "{not json", id("bad-json")),
+          http_post(s.port(), "/v2/models/demo/infer", infer_json(1).dump(), bad_header),
+          http_post(s.port(), "/v2/models/demo/infer", wrong_shape.dump(), id("bad-shape")),
+          http_post(s.port(), "/v2/models/demo/infer", wrong_dtype.dump(), id("bad-dtype"))})
+      EXPECT_EQ(reply.status, 400) << reply.body;
+    // Refused before the body is read: no line.
+    EXPECT_EQ(http_post(s.port(), "/v2/models/other/infer", "{not json", id("bad-model")).status, 404);
+    const std::string metrics = http_get(s.port(), "/metrics").body;
+    EXPECT_NE(metrics.find("transport=\"kserve\",endpoint=\"/v2/models/{name}/infer\",status=\"400\"} 4"),
+              std::string::npos)
+        << metrics;
+  }
+  std::vector<Json> lines;
+  for (const auto& entry : std::filesystem::directory_iterator(dir)) {
+    std::ifstream in(entry.path());
+    for (std::string line; std::getline(in, line);)
+      if (!line.empty()) lines.push_back(Json::parse(line));
+  }
+  ASSERT_EQ(lines.size(), 5u);
+  EXPECT_EQ(lines[0]["request_id"], "good");
+  EXPECT_EQ(lines[0]["status"], "success");
+  const std::vector<std::pair<std::string, std::string>> expected = {
+      {"bad-json", "bad_json"}, {"bad-header", "invalid_field"}, {"bad-shape", "invalid_state"},
+      {"bad-dtype", "invalid_field"}};
+  for (std::size_t i = 0; i < expected.size(); ++i) {
+    const Json& line = lines[i + 1];
+    EXPECT_EQ(line["request_id"], expected[i].first);
+    EXPECT_EQ(line["transport"], "kserve");
+    EXPECT_EQ(line["status"], "failed");
+    EXPECT_EQ(line["http_status"], 400);
+    EXPECT_EQ(line["error"]["code"], expected[i].second) << line.dump();
+  }
+  EXPECT_NE(lines[2]["error"]["message"].get<std::string>().find("Inference-Header-Content-Length"), std::string::npos);
+  EXPECT_NE(lines[3]["error"]["message"].get<std::string>().find("input 'state'"), std::string::npos);
+  // The refusals extend the hash chain: the earlier line is intact and the chain verifies.
+  const runtime::TraceVerifyReport report = runtime::verify_traces(dir.string());
+  EXPECT_TRUE(report.ok()) << report.problem->message;
+  EXPECT_EQ(report.lines, 5u);
+  std::filesystem::remove_all(dir);
 }
