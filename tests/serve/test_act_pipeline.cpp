@@ -5,11 +5,11 @@
 
 #include <boost/asio.hpp>
 #include <filesystem>
-#include <fstream>
 
 #include "core/error.h"
 #include "serve/act_pipeline.h"
 #include "serve/base64.h"
+#include "trace_lines.h"
 
 using namespace tether;
 using namespace tether::serve;
@@ -176,12 +176,7 @@ TEST(ActPipeline, RecordsATraceLineForSuccessAndFailure) {
     ASSERT_EQ(f.run(act_body(1)).status, 200);
     ASSERT_EQ(f.run("{}").status, 400);
   }
-  std::vector<Json> lines;
-  for (const auto& entry : std::filesystem::directory_iterator(dir)) {
-    std::ifstream in(entry.path());
-    for (std::string line; std::getline(in, line);)
-      if (!line.empty()) lines.push_back(Json::parse(line));
-  }
+  const std::vector<Json> lines = serve::testing::read_trace_lines(dir);
   ASSERT_EQ(lines.size(), 2u);
   EXPECT_EQ(lines[0]["status"], "success");
   EXPECT_EQ(lines[0]["model"], "fake-model");

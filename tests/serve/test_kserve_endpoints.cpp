@@ -8,13 +8,13 @@
 #include <atomic>
 #include <cstring>
 #include <filesystem>
-#include <fstream>
 #include <thread>
 
 #include "core/json_util.h"
 #include "http_test_client.h"
 #include "runtime/trace_reader.h"
 #include "serve/server.h"
+#include "trace_lines.h"
 
 using namespace tether;
 using namespace tether::serve;
@@ -242,12 +242,7 @@ TEST(ServerKServeEndpoints, RequestsRefusedWhileDecodingLeaveATraceLine) {
               std::string::npos)
         << metrics;
   }
-  std::vector<Json> lines;
-  for (const auto& entry : std::filesystem::directory_iterator(dir)) {
-    std::ifstream in(entry.path());
-    for (std::string line; std::getline(in, line);)
-      if (!line.empty()) lines.push_back(Json::parse(line));
-  }
+  const std::vector<Json> lines = read_trace_lines(dir);
   ASSERT_EQ(lines.size(), 5u);
   EXPECT_EQ(lines[0]["request_id"], "good");
   EXPECT_EQ(lines[0]["status"], "success");
