@@ -75,23 +75,32 @@ def encode_image(image: ImageLike) -> Union[str, Dict[str, Any]]:
         TypeError: an object of none of the forms above.
         OSError: a path that cannot be read.
     """
+    raw = image_bytes(image)
+    if isinstance(raw, bytes):
+        return base64.b64encode(raw).decode("ascii")
+    return {"data": base64.b64encode(raw["data"]).decode("ascii"), "shape": raw["shape"]}
+
+
+def image_bytes(image: ImageLike) -> Union[bytes, Dict[str, Any]]:
+    """:func:`encode_image` before base64: PNG/JPEG file bytes, or ``{"data": pixel bytes, "shape": [H, W, 3]}``.
+    Binary transports (ZMQ) send this as it is."""
     if isinstance(image, (str, os.PathLike)):
         with open(image, "rb") as f:
             data = f.read()
         if not _is_encoded(data):
             raise ValueError(f"{os.fspath(image)!r} is neither a PNG nor a JPEG file")
-        return base64.b64encode(data).decode("ascii")
+        return data
     if isinstance(image, (bytes, bytearray, memoryview)):
         data = bytes(image)
         if not _is_encoded(data):
             raise ValueError("image bytes are neither a PNG nor a JPEG file (pass a numpy array for raw pixels)")
-        return base64.b64encode(data).decode("ascii")
+        return data
     if not isinstance(image, np.ndarray) and hasattr(image, "__array_interface__"):
         image = np.asarray(image)
     if isinstance(image, np.ndarray):
         pixels = np.ascontiguousarray(_array_to_uint8(image))
         return {
-            "data": base64.b64encode(pixels.tobytes()).decode("ascii"),
+            "data": pixels.tobytes(),
             "shape": [int(pixels.shape[0]), int(pixels.shape[1]), 3],
         }
     raise TypeError(

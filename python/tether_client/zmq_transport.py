@@ -12,7 +12,7 @@ from typing import Any, Dict, Optional, Tuple
 import numpy as np
 
 from .errors import TetherConnectionError, TetherError, TetherTimeoutError
-from .images import ImageLike, encode_image
+from .images import ImageLike, image_bytes
 
 try:  # optional dependencies
     import msgpack
@@ -20,15 +20,12 @@ try:  # optional dependencies
 except ImportError as e:  # pragma: no cover - exercised only without the extra
     raise ImportError("transport='zmq' needs pyzmq and msgpack: pip install 'tether-client[zmq]'") from e
 
-import base64
 
 
 def encode_image_zmq(image: ImageLike) -> Any:
-    """An image as the ZMQ protocol carries it: PNG/JPEG bytes as they are, pixels as ``{"data": bytes, "shape"}``."""
-    encoded = encode_image(image)
-    if isinstance(encoded, str):
-        return base64.b64decode(encoded)
-    return {"data": base64.b64decode(encoded["data"]), "shape": list(encoded["shape"])}
+    """An image as the ZMQ protocol carries it: PNG/JPEG bytes as they are, pixels as ``{"data": bytes, "shape"}``
+    (no base64 on the way: msgpack carries bytes)."""
+    return image_bytes(image)
 
 
 class ZmqChannel:
