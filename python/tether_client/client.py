@@ -100,12 +100,13 @@ class _Response:
     status: int
     headers: Dict[str, str]  # lower-cased names
     body: bytes
+    parsed: Any = None  # the body already decoded, when the transport carries structured data (ZMQ's msgpack)
 
     def header(self, name: str) -> Optional[str]:
         return self.headers.get(name.lower())
 
     def json(self) -> Any:
-        return json.loads(self.body.decode("utf-8"))
+        return self.parsed if self.parsed is not None else json.loads(self.body.decode("utf-8"))
 
 
 class Episode:
