@@ -413,6 +413,7 @@ net::awaitable<void> accept_loop(std::shared_ptr<Shared> s) {
       co_await pause.async_wait(net::redirect_error(net::use_awaitable, ec));
       continue;
     }
+    socket.set_option(tcp::no_delay(true), ec);  // small frames each way: never wait for a delayed ACK
     auto ex = socket.get_executor();
     net::co_spawn(ex, serve_connection(s, std::move(socket)), net::detached);
   }

@@ -65,6 +65,9 @@ struct Server::Impl {
   }
 
   void spawn_session(tcp::socket socket) {
+    // Request/response traffic: Nagle would hold a response's last segment back until the client's delayed ACK.
+    boost::system::error_code ec;
+    socket.set_option(tcp::no_delay(true), ec);
     auto executor = socket.get_executor();
     net::co_spawn(executor, sessions.serve(std::move(socket)), net::detached);
   }
