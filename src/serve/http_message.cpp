@@ -1,9 +1,13 @@
 // Reading request headers and building the server's HTTP responses.
 #include "serve/http_message.h"
 
+#include <algorithm>
+#include <cctype>
+
 #include "runtime/fallback_client.h"
 #include "serve/http_error.h"
 #include "serve/request_id.h"
+#include "serve/zmq_protocol.h"
 
 namespace tether::serve {
 
@@ -14,6 +18,21 @@ namespace {
 std::string dump(const Json& body) { return body.dump(-1, ' ', false, Json::error_handler_t::replace); }
 
 const char* kKnownPaths[] = {"/act", "/health", "/ready", "/live", "/config", "/metrics"};
+
+// A media type without its parameters, trimmed and lower-cased ("Application/MsgPack; q=1" -> "application/msgpack").
+std::string media_type(std::string_view v) {
+  v = v.substr(0, v.find(';'));
+  while (!v.empty() && (v.front() == ' ' || v.front() == '\t')) v.remove_prefix(1);
+  while (!v.empty() && (v.back() == ' ' || v.back() == '\t')) v.remove_suffix(1);
+  std::string out(v);
+  for (char& c : out) c = char(std::tolower(static_cast<unsigned char>(c)));
+  return out;
+}
+
+bool is_msgpack_type(std::string_view v) {
+  const std::string t = media_type(v);
+  return t == "application/msgpack" || t == "application/x-msgpack";
+}
 
 }  // namespace
 
@@ -77,8 +96,23 @@ HttpResponse json_response(const HttpRequest& req, int status, const Json& body,
   return res;
 }
 
-HttpResponse act_response(const HttpRequest& req, const ActResponse& act, const std::string& request_id) {
-  HttpResponse res = make_response(req, http::status(act.status), dump(act.body), request_id);
+bool has_msgpack_body(const HttpRequest& req) { return is_msgpack_type(header(req, "Content-Type")); }
+
+bool accepts_msgpack(const HttpRequest& req) {
+  const std::string accept = header(req, "Accept");
+  for (std::size_t start = 0; start <= accept.size();) {
+    const std::size_t comma = std::min(accept.find(',', start), accept.size());
+    if (is_msgpack_type(std::string_view(accept).substr(start, comma - start))) return true;
+    start = comma + 1;
+  }
+  return false;
+}
+
+HttpResponse act_response(const HttpRequest& req, const ActResponse& act, const std::string& request_id,
+                          bool msgpack) {
+  HttpResponse res = msgpack ? make_response(req, http::status(act.status), zmqp::encode_body(act.body), request_id,
+                                             "application/msgpack")
+                             : make_response(req, http::status(act.status), dump(act.body), request_id);
   if (act.status == 503) res.set(http::field::retry_after, std::to_string(act.retry_after_s));
   return res;
 }

@@ -34,7 +34,13 @@ HttpResponse error_response(const HttpRequest& req, int status, const std::strin
                             const std::string& request_id, int retry_after_s = 1);
 // A JSON body; a 503 carries Retry-After: 1.
 HttpResponse json_response(const HttpRequest& req, int status, const Json& body, const std::string& request_id);
-// The pipeline's answer as HTTP.
-HttpResponse act_response(const HttpRequest& req, const ActResponse& act, const std::string& request_id);
+// Whether the request's Content-Type is msgpack (application/msgpack, or the older application/x-msgpack).
+bool has_msgpack_body(const HttpRequest& req);
+// Whether the request's Accept header lists msgpack: its /act answer is then a msgpack map.
+bool accepts_msgpack(const HttpRequest& req);
+
+// The pipeline's answer as HTTP: JSON, or with `msgpack` the same map as msgpack (actions as float32).
+HttpResponse act_response(const HttpRequest& req, const ActResponse& act, const std::string& request_id,
+                          bool msgpack = false);
 
 }  // namespace tether::serve

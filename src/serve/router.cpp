@@ -4,6 +4,7 @@
 #include "serve/auth.h"
 #include "serve/http_error.h"
 #include "serve/wedge_metrics.h"
+#include "serve/zmq_protocol.h"
 
 namespace tether::serve {
 
@@ -103,8 +104,17 @@ boost::asio::awaitable<HttpResponse> Router::handle(const HttpRequest& req,
   // A POST to /act goes to the pipeline, which counts its own answers (as it does for every transport).
   if (path == "/act" && req.method() == http::verb::post) {
     const RequestContext ctx = act_context(req, request_id, received);
-    const ActResponse act = co_await pipeline_.run(req.body(), ctx);
-    co_return act_response(req, act, request_id);
+    const std::string_view body = req.body();
+    if (has_msgpack_body(req)) {
+      // The binary body: raw image bytes without base64 (docs/serve-api.md#msgpack-bodies).
+      const ActInput input{body.size(),
+                           [body](const models::ModelSpec& spec) { return zmqp::decode_http_body(body, spec); },
+                           [](const ActRequest& r) { return act_request_json(r); }};
+      const ActResponse act = co_await pipeline_.run(input, ctx);
+      co_return act_response(req, act, request_id, accepts_msgpack(req));
+    }
+    const ActResponse act = co_await pipeline_.run(body, ctx);
+    co_return act_response(req, act, request_id, accepts_msgpack(req));
   }
   if (is_kserve_path(path)) co_return co_await kserve_.handle(req, request_id, received);
   int status = 500, retry_after_s = 1;

@@ -2,6 +2,7 @@
 #include "serve/zmq_protocol.h"
 
 #include <cmath>
+#include <iterator>
 
 #include "serve/http_error.h"
 #include "serve/msgpack_json.h"
@@ -16,6 +17,8 @@ namespace {
 std::string kind_of(const msgpack::Value& v) { return msgpack::kind_name(v.kind); }
 
 const char* const kFields = "instruction, state, image, images, episode_id, seed, rtc, api_key, request_id, id";
+const char* const kHttpFields =
+    "instruction, state, image, images, episode_id, seed, rtc; the key and the request id travel as headers";
 
 const msgpack::Value* field(const msgpack::Value& map, std::string_view key) {
   const msgpack::Value* v = map.find(key);
@@ -140,17 +143,21 @@ Request parse_request(std::string_view message) {
   return req;
 }
 
-ActRequest decode_act(const Request& request, const models::ModelSpec& spec) {
-  const msgpack::Value& m = request.root;
+namespace {
+
+// The /act fields of a msgpack map; `envelope`: api_key, request_id and id are accepted too (ZMQ carries them in the
+// message, HTTP in its headers).
+ActRequest decode_fields(const msgpack::Value& m, const models::ModelSpec& spec, bool envelope) {
   static const char* const kKnown[] = {"instruction", "state", "image", "images", "episode_id", "seed", "rtc",
                                        "api_key", "request_id", "id"};
+  const std::size_t known_count = envelope ? std::size(kKnown) : std::size(kKnown) - 3;
   for (const auto& [k, _] : m.entries) {
     bool known = false;
     if (k.is_text_or_bin())
-      for (const char* name : kKnown) known = known || k.bytes == name;
+      for (std::size_t i = 0; i < known_count; ++i) known = known || k.bytes == kKnown[i];
     if (!known)
       fail("unknown_field", "unknown field '" + (k.is_text_or_bin() ? std::string(k.bytes.substr(0, 64)) : kind_of(k)) +
-                                "' (accepted: " + kFields + ")");
+                                "' (accepted: " + (envelope ? kFields : kHttpFields) + ")");
   }
   ActRequest req;
   policy::Observation& obs = req.observation;
@@ -203,8 +210,32 @@ ActRequest decode_act(const Request& request, const models::ModelSpec& spec) {
   return req;
 }
 
+}  // namespace
+
+ActRequest decode_act(const Request& request, const models::ModelSpec& spec) {
+  return decode_fields(request.root, spec, true);
+}
+
 ActRequest decode_message(std::string_view message, const models::ModelSpec& spec) {
   return decode_act(parse_request(message), spec);
+}
+
+ActRequest decode_http_body(std::string_view body, const models::ModelSpec& spec) {
+  msgpack::Value root;
+  try {
+    root = msgpack::parse(body);
+  } catch (const msgpack::Error& e) {
+    fail("bad_msgpack", std::string("the body is not valid msgpack: ") + e.what());
+  }
+  if (!root.is_map()) fail("bad_msgpack", "the body must be a msgpack map with /act's fields, got " + kind_of(root));
+  return decode_fields(root, spec, false);
+}
+
+std::string encode_body(const Json& body) {
+  msgpack::Writer w;
+  w.map(uint32_t(body.size()));
+  write_body(w, body);
+  return w.take();
 }
 
 std::string encode_reply(int status, const Json& body, int retry_after_s, const std::string& request_id, const Json& id) {

@@ -31,6 +31,14 @@ ActRequest decode_act(const Request& request, const models::ModelSpec& spec);
 // Bytes to ActRequest in one step (the fuzz target's entry).
 ActRequest decode_message(std::string_view message, const models::ModelSpec& spec);
 
+// A POST /act body sent as Content-Type: application/msgpack: the same map without the envelope fields (api_key,
+// request_id and id travel as HTTP headers there, and are refused as unknown_field). Throws HttpError(400,
+// bad_msgpack) for bytes that are not one msgpack map, else decode_act's codes.
+ActRequest decode_http_body(std::string_view body, const models::ModelSpec& spec);
+
+// The /act answer (or {"error": {...}}) as a msgpack map, `actions` rows as float32 arrays: HTTP's msgpack answer.
+std::string encode_body(const Json& body);
+
 // A reply: `body` (the /act answer or {"error": {code, message}}) as a map, `actions` rows as float32 arrays, plus
 // "status", "request_id", "retry_after_s" on a 503, and "id" when the request had one.
 std::string encode_reply(int status, const Json& body, int retry_after_s, const std::string& request_id, const Json& id);

@@ -29,7 +29,7 @@ inline HttpReply http_request(uint16_t port, boost::beast::http::verb method, co
   for (const auto& [k, v] : headers) req.set(k, v);
   if (!body.empty() || method == http::verb::post) {
     req.body() = body;
-    req.set(http::field::content_type, "application/json");
+    if (req.find(http::field::content_type) == req.end()) req.set(http::field::content_type, "application/json");
   }
   req.prepare_payload();
   http::write(stream, req);

@@ -1,16 +1,21 @@
 // The HTTP server in-process with a fake engine: health state machine, auth, routing, request ids, the limits,
 // queue_full, inference_failed (and serving on), request_timeout, metrics, and stop() draining in-flight requests.
 #include <gtest/gtest.h>
+#include <unistd.h>
 
 #include <atomic>
+#include <filesystem>
 #include <condition_variable>
 #include <future>
 #include <thread>
 
 #include "core/json_util.h"
 #include "http_test_client.h"
+#include "runtime/trace_reader.h"
 #include "serve/base64.h"
+#include "serve/msgpack.h"
 #include "serve/server.h"
+#include "trace_lines.h"
 
 using namespace tether;
 using namespace tether::serve;
@@ -114,6 +119,28 @@ std::string body(float state0, uint64_t seed) {
 }
 
 std::string error_code(const HttpReply& r) { return Json::parse(r.body)["error"]["code"].get<std::string>(); }
+
+// body() as msgpack: raw image bytes, no base64.
+std::string msgpack_body(float state0, uint64_t seed) {
+  msgpack::Writer w;
+  w.map(4);
+  w.str("instruction");
+  w.str("go");
+  w.str("state");
+  w.array(2);
+  w.float32(state0);
+  w.float32(0);
+  w.str("image");
+  w.map(2);
+  w.str("data");
+  w.bin(std::string(4 * 4 * 3, '\x64'));
+  w.str("shape");
+  w.array(3);
+  for (int d : {4, 4, 3}) w.integer(d);
+  w.str("seed");
+  w.integer(int64_t(seed));
+  return w.take();
+}
 
 }  // namespace
 
@@ -416,4 +443,93 @@ TEST(Server, ConcurrentKeepAliveClientsNeverStall) {
     });
   for (auto& t : clients) t.join();
   EXPECT_EQ(ok.load(), kClients * kRequests);
+}
+
+TEST(Server, ActTakesMsgpackBodiesAndAnswersInTheFormatAccepted) {
+  const auto dir = std::filesystem::temp_directory_path() / ("tether_msgpack_trace_" + std::to_string(::getpid()));
+  std::filesystem::remove_all(dir);
+  FakeEngine engine;
+  ServerOptions o;
+  o.max_body_bytes = 4096;
+  runtime::TraceOptions t;
+  t.dir = dir.string();
+  t.fsync = runtime::TraceOptions::Fsync::every_line;
+  o.wedges.record = t;
+  using Headers = std::vector<std::pair<std::string, std::string>>;
+  const auto msgpack_headers = [](const std::string& id, const std::string& accept) {
+    return Headers{{"Content-Type", "application/msgpack"}, {"Accept", accept}, {"X-Tether-Request-ID", id}};
+  };
+  {
+    TestServer srv(engine, o);
+    srv.wait_ready();
+    // The same request as JSON and as msgpack: the same actions.
+    const HttpReply as_json = http_post(srv.port(), "/act", body(2, 11));
+    HttpReply r = http_post(srv.port(), "/act", msgpack_body(2, 11), msgpack_headers("mp-json", "application/json"));
+    ASSERT_EQ(r.status, 200) << r.body;
+    EXPECT_EQ(r.headers.at("content-type"), "application/json");
+    EXPECT_EQ(Json::parse(r.body)["actions"], Json::parse(as_json.body)["actions"]);
+    // Accept: msgpack (among others, with parameters): the answer is a msgpack map, actions as float32.
+    r = http_post(srv.port(), "/act", msgpack_body(2, 11),
+                  msgpack_headers("mp-mp", "application/json;q=0.5, Application/MsgPack; q=1"));
+    ASSERT_EQ(r.status, 200);
+    EXPECT_EQ(r.headers.at("content-type"), "application/msgpack");
+    const msgpack::Value answer = msgpack::parse(r.body);
+    EXPECT_EQ(answer.find("request_id")->bytes, "mp-mp");
+    EXPECT_EQ(answer.find("actions")->items.size(), 3u);
+    EXPECT_EQ(answer.find("actions")->items[1].items[0].kind, msgpack::Kind::float32);
+    EXPECT_EQ(answer.find("actions")->items[1].items[0].number, FakeEngine::expected(2, 11, 1, 0));
+
+    // Bad input: the usual stable codes, in the format the client accepts.
+    r = http_post(srv.port(), "/act", "\x81\xa5sta", msgpack_headers("truncated", "application/json"));
+    EXPECT_EQ(r.status, 400);
+    EXPECT_EQ(error_code(r), "bad_msgpack");
+    r = http_post(srv.port(), "/act", body(1, 1), msgpack_headers("json-as-msgpack", "application/msgpack"));
+    EXPECT_EQ(r.status, 400);
+    EXPECT_EQ(r.headers.at("content-type"), "application/msgpack");
+    EXPECT_EQ(msgpack::parse(r.body).find("error")->find("code")->bytes, "bad_msgpack");
+    msgpack::Writer wrong;
+    wrong.map(1);
+    wrong.str("state");
+    wrong.str("0,0");
+    r = http_post(srv.port(), "/act", wrong.take(), msgpack_headers("wrong-type", "application/json"));
+    EXPECT_EQ(r.status, 400);
+    EXPECT_EQ(error_code(r), "missing_field");  // no instruction: the first check
+    msgpack::Writer state_text;
+    state_text.map(2);
+    state_text.str("instruction");
+    state_text.str("go");
+    state_text.str("state");
+    state_text.str("0,0");
+    r = http_post(srv.port(), "/act", state_text.take(), msgpack_headers("state-text", "application/json"));
+    EXPECT_EQ(r.status, 400);
+    EXPECT_EQ(error_code(r), "invalid_field");
+    r = http_post(srv.port(), "/act", std::string(8192, '\x90'), msgpack_headers("huge", "application/msgpack"));
+    EXPECT_EQ(r.status, 413);
+    EXPECT_EQ(error_code(r), "body_too_large");  // refused while reading, before the format is known: JSON
+    // Still serving.
+    r = http_post(srv.port(), "/act", msgpack_body(3, 4), msgpack_headers("after", "application/json"));
+    EXPECT_EQ(r.status, 200);
+    const std::string metrics = http_get(srv.port(), "/metrics").body;
+    EXPECT_NE(metrics.find("tether_requests_total{transport=\"http\",endpoint=\"/act\",status=\"400\"} 4"),
+              std::string::npos)
+        << metrics;
+  }
+  // One line per request that reached the pipeline (the 413 did not), refusals included; the chain verifies.
+  const std::vector<Json> lines = read_trace_lines(dir);
+  ASSERT_EQ(lines.size(), 8u);
+  const std::vector<std::pair<std::string, std::string>> refused = {
+      {"truncated", "bad_msgpack"}, {"json-as-msgpack", "bad_msgpack"}, {"wrong-type", "missing_field"},
+      {"state-text", "invalid_field"}};
+  for (std::size_t i = 0; i < refused.size(); ++i) {
+    const Json& line = lines[i + 3];
+    EXPECT_EQ(line["request_id"], refused[i].first);
+    EXPECT_EQ(line["transport"], "http");
+    EXPECT_EQ(line["http_status"], 400);
+    EXPECT_EQ(line["error"]["code"], refused[i].second) << line.dump();
+  }
+  EXPECT_EQ(lines[7]["request_id"], "after");
+  EXPECT_EQ(lines[7]["status"], "success");
+  const runtime::TraceVerifyReport report = runtime::verify_traces(dir.string());
+  EXPECT_TRUE(report.ok()) << report.problem->message;
+  std::filesystem::remove_all(dir);
 }

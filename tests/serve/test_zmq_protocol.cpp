@@ -146,3 +146,56 @@ TEST(ZmqProtocol, ReplyCarriesStatusIdAndFloat32Actions) {
   EXPECT_EQ(e.find("request_id")->bytes, "r2");
   EXPECT_EQ(e.find("id"), nullptr);
 }
+
+// POST /act with Content-Type: application/msgpack: the same map, without the envelope fields (headers over HTTP).
+TEST(ZmqProtocol, HttpBodyHasTheActFieldsOnly) {
+  mp::Writer w;
+  w.map(4);
+  w.str("instruction");
+  w.str("pick");
+  w.str("state");
+  w.array(3);
+  for (int i = 0; i < 3; ++i) w.float32(float(i));
+  w.str("image");
+  raw_image(w, 2, 2, 12);
+  w.str("seed");
+  w.integer(9);
+  const ActRequest r = zmqp::decode_http_body(w.take(), spec());
+  EXPECT_EQ(r.observation.instruction, "pick");
+  EXPECT_EQ(*r.seed, 9u);
+  EXPECT_EQ(r.observation.images.at("observation.images.front").width, 2);
+
+  auto http_code = [](const std::string& body) {
+    try {
+      zmqp::decode_http_body(body, spec());
+    } catch (const HttpError& e) {
+      EXPECT_EQ(e.status(), 400);
+      return e.code() + ": " + e.what();
+    }
+    return std::string("ok");
+  };
+  // message() carries api_key and id: over HTTP they are unknown fields.
+  EXPECT_NE(http_code(message()).find("unknown_field: unknown field 'api_key'"), std::string::npos);
+  EXPECT_EQ(http_code("").substr(0, 11), "bad_msgpack");
+  EXPECT_EQ(http_code("\x93\x01\x02\x03").substr(0, 11), "bad_msgpack");  // an array, not a map
+  EXPECT_EQ(http_code(std::string("\x81\xa5state", 7)).substr(0, 11), "bad_msgpack");  // truncated
+  mp::Writer wrong;
+  wrong.map(3);
+  wrong.str("instruction");
+  wrong.integer(1);
+  wrong.str("state");
+  wrong.str("1,2,3");
+  wrong.str("image");
+  raw_image(wrong, 2, 2, 12);
+  EXPECT_EQ(http_code(wrong.take()), "invalid_field: instruction: expected a string, got integer");
+}
+
+TEST(ZmqProtocol, HttpAnswerIsTheBodyAsAMap) {
+  const Json body = {{"actions", {{1.5, 2.5}}}, {"num_actions", 1}, {"request_id", "r1"}};
+  const std::string bytes = zmqp::encode_body(body);  // the parsed value's strings are views into it
+  const mp::Value v = mp::parse(bytes);
+  EXPECT_EQ(v.entries.size(), 3u);  // nothing added: no status, no id
+  EXPECT_EQ(v.find("actions")->items.at(0).items.at(1).kind, mp::Kind::float32);
+  EXPECT_EQ(v.find("actions")->items.at(0).items.at(1).number, 2.5);
+  EXPECT_EQ(v.find("request_id")->bytes, "r1");
+}
