@@ -68,6 +68,11 @@ class Recorded:
         self.port = port  # the client's source port: equal ports mean one keep-alive connection
 
     def json(self) -> Any:
+        """The body decoded as the client sent it: msgpack (the client's default) or JSON."""
+        if self.headers.get("content-type") == "application/msgpack":
+            import msgpack
+
+            return msgpack.unpackb(self.body, raw=False)
         return json.loads(self.body)
 
 
@@ -116,13 +121,15 @@ class FakeServer:
                     payload, ctype = reply.body, "text/plain"
                 else:
                     payload, ctype = (reply.body or "").encode(), "text/plain"
+                ctype = reply.headers.get("Content-Type", ctype)
                 self.send_response(reply.status)
                 self.send_header("Content-Type", ctype)
                 self.send_header("Content-Length", str(len(payload)))
                 rid = self.headers.get("X-Tether-Request-ID") or "srv-" + str(len(fake.requests))
                 self.send_header("X-Tether-Request-ID", rid)
                 for k, v in reply.headers.items():
-                    self.send_header(k, v)
+                    if k != "Content-Type":
+                        self.send_header(k, v)
                 if reply.early:
                     self.send_header("Connection", "close")
                 self.end_headers()

@@ -59,20 +59,25 @@ def fast_client(url: str, **kw) -> TetherClient:
 # -- request encoding -----------------------------------------------------------------------------------------
 
 
-def test_act_sends_raw_array_and_parses_result(fake):
+@pytest.mark.parametrize("body_format", ["msgpack", "json"])
+def test_act_sends_raw_array_and_parses_result(fake, body_format):
     frame = np.arange(4 * 5 * 3, dtype=np.uint8).reshape(4, 5, 3)
-    with fast_client(fake.url) as client:
+    with fast_client(fake.url, body_format=body_format) as client:
         result = client.act(frame, state=np.array(STATE, dtype=np.float32), instruction="pick", seed=7)
     sent = fake.requests[0]
     assert (sent.method, sent.path) == ("POST", "/act")
-    assert sent.headers["content-type"] == "application/json"
+    assert sent.headers["content-type"] == f"application/{body_format}"
     body = sent.json()
     assert body["instruction"] == "pick"
     assert body["state"] == [float(v) for v in STATE]
     assert body["seed"] == 7
     assert "episode_id" not in body and "images" not in body
     assert body["image"]["shape"] == [4, 5, 3]
-    assert base64.b64decode(body["image"]["data"]) == frame.tobytes()
+    if body_format == "msgpack":  # the pixels as bytes, and the answer asked for in msgpack
+        assert body["image"]["data"] == frame.tobytes()
+        assert sent.headers["accept"] == "application/msgpack"
+    else:
+        assert base64.b64decode(body["image"]["data"]) == frame.tobytes()
 
     assert result.actions.dtype == np.float32
     assert result.actions.shape == (50, 6) == (result.num_actions, result.action_dim)
@@ -98,9 +103,46 @@ def test_images_accept_bytes_paths_and_arrays(fake, tmp_path: Path):
             instruction="x",
         )
     images = fake.requests[0].json()["images"]
-    assert images["front"] == base64.b64encode(png).decode()
+    assert images["front"] == png  # msgpack: file bytes as they are
     assert images["observation.images.wrist"] == images["front"] == images["top"]
+    assert images["side"] == jpeg_like
+    with fast_client(fake.url, body_format="json") as client:
+        client.act(images={"front": png, "side": jpeg_like}, state=STATE, instruction="x")
+    images = fake.requests[1].json()["images"]
+    assert images["front"] == base64.b64encode(png).decode()
     assert base64.b64decode(images["side"]) == jpeg_like
+
+
+def test_msgpack_answers_and_errors_are_decoded(fake):
+    import msgpack
+
+    msgpack_type = {"Content-Type": "application/msgpack"}
+    error = {"error": {"code": "invalid_state", "message": "state has 2 values"}}
+    fake.script = [Reply(200, msgpack.packb(ACT_OK), headers=msgpack_type),
+                   Reply(400, msgpack.packb(error), headers=msgpack_type),
+                   Reply(200, b"\xc1", headers=msgpack_type)]
+    with fast_client(fake.url) as client:
+        result = client.act(np.zeros((2, 2, 3), np.uint8), state=STATE, instruction="x")
+        np.testing.assert_array_equal(result.actions, np.asarray(ACT_OK["actions"], dtype=np.float32))
+        assert result.raw == ACT_OK
+        with pytest.raises(InvalidRequestError) as info:
+            client.act(np.zeros((2, 2, 3), np.uint8), state=STATE, instruction="x")
+        assert info.value.code == "invalid_state" and info.value.body == error
+        with pytest.raises(TetherError) as bad:
+            client.act(np.zeros((2, 2, 3), np.uint8), state=STATE, instruction="x")
+        assert bad.value.code == "bad_response"
+
+
+def test_body_format_is_checked():
+    with pytest.raises(ValueError, match="body_format"):
+        TetherClient("http://127.0.0.1:1", body_format="xml")
+
+
+def test_http_connection_sets_tcp_nodelay(fake):
+    with fast_client(fake.url) as client:
+        client.health()
+        assert client._conn is not None and client._conn.sock is not None
+        assert client._conn.sock.getsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY) != 0
 
 
 def test_float_and_gray_images_are_converted():

@@ -56,8 +56,8 @@ JPEG_PATH = FIXTURE_IMAGES / "images" / "camera_240x320.jpg"
 CAMERA = "observation.images.front"
 REQUEST_ID_RE = re.compile(r"^[A-Za-z0-9._:-]{1,128}$")
 ERROR_CODES = {
-    400: {"bad_json", "invalid_field", "invalid_state", "invalid_image", "unknown_camera", "unknown_field",
-          "missing_field"},
+    400: {"bad_json", "bad_msgpack", "invalid_field", "invalid_state", "invalid_image", "unknown_camera",
+          "unknown_field", "missing_field"},
     401: {"unauthorized"},
     404: {"not_found"},
     405: {"method_not_allowed"},
@@ -187,6 +187,66 @@ def test_png_and_raw_array_of_the_same_pixels_agree(server):
         b = client.act(encode_png(frame), state=STATE, instruction=INSTRUCTION, seed=5)
     assert a.actions.shape == (50, 6)
     np.testing.assert_array_equal(a.actions, b.actions)
+
+
+def test_msgpack_and_json_bodies_agree(server):
+    import msgpack
+
+    frame = np.random.default_rng(4).integers(0, 256, size=(224, 224, 3), dtype=np.uint8)
+    with TetherClient(server.url, api_key="", timeout=60, body_format="msgpack") as binary, \
+            TetherClient(server.url, api_key="", timeout=60, body_format="json") as text:
+        a = binary.act(frame, state=STATE, instruction=INSTRUCTION, seed=5, request_id="mp-1")
+        b = text.act(frame, state=STATE, instruction=INSTRUCTION, seed=5)
+        from_png = binary.act(SAMPLE_BYTES, state=STATE, instruction=INSTRUCTION, seed=5)
+    np.testing.assert_array_equal(a.actions, b.actions)
+    assert a.request_id == "mp-1" and a.latency_ms["total"] > 0 and from_png.actions.shape == (50, 6)
+    # The answer follows Accept: a msgpack map with float32 actions, or JSON.
+    body = msgpack.packb({"instruction": INSTRUCTION, "state": STATE, "image": SAMPLE_BYTES, "seed": 7})
+    for accept, decode in (("application/msgpack", msgpack.unpackb), ("application/json", json.loads)):
+        status, headers, raw = post_act(server, body, {"Content-Type": "application/msgpack", "Accept": accept})
+        assert status == 200 and headers["content-type"] == accept
+        check_actions(decode(raw))
+
+
+@pytest.mark.parametrize(
+    "body, code",
+    [
+        (b"\xc1", "bad_msgpack"),
+        (b"\x92\x01\x02", "bad_msgpack"),  # an array, not a map
+        (b"\x82\xabinstruction", "bad_msgpack"),  # truncated
+        ("json", "bad_msgpack"),  # JSON sent as msgpack
+        ("instruction-int", "invalid_field"),
+        ("state-str", "invalid_field"),
+        ("api_key", "unknown_field"),  # the key travels as a header over HTTP
+    ],
+    ids=["never-used-byte", "array", "truncated", "json", "instruction-int", "state-str", "api_key"],
+)
+def test_bad_msgpack_bodies_are_refused_and_the_server_keeps_serving(server, body, code):
+    import msgpack
+
+    fields = {"instruction": INSTRUCTION, "state": STATE, "image": SAMPLE_BYTES}
+    if body == "json":
+        body = act_body()
+    elif body == "instruction-int":
+        body = msgpack.packb(dict(fields, instruction=3))
+    elif body == "state-str":
+        body = msgpack.packb(dict(fields, state="0,90"))
+    elif body == "api_key":
+        body = msgpack.packb(dict(fields, api_key="k"))
+    expect_error(post_act(server, body, {"Content-Type": "application/msgpack"}), 400, code)
+    status, headers, raw = post_act(server, body, {"Content-Type": "application/msgpack", "Accept": "application/msgpack"})
+    assert status == 400 and headers["content-type"] == "application/msgpack"
+    assert msgpack.unpackb(raw)["error"]["code"] == code
+    assert check_actions(ok_json(post_act(server, act_body(seed=3)))).shape == (50, 6)
+
+
+def test_huge_msgpack_body_is_answered_413(server):
+    frame = np.zeros((2048, 4096, 3), dtype=np.uint8)  # 24 MiB of raw bytes against the default 16 MiB
+    with TetherClient(server.url, api_key="", timeout=60, body_format="msgpack") as client:
+        with pytest.raises(InvalidRequestError) as info:
+            client.act(frame, state=STATE, instruction=INSTRUCTION)
+        assert (info.value.status, info.value.code) == (413, "body_too_large")
+        assert client.act(tiny_frame(), state=STATE, instruction=INSTRUCTION).actions.shape == (50, 6)
 
 
 def test_image_and_images_short_and_full_names_agree(server):

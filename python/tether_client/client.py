@@ -1,4 +1,5 @@
-"""HTTP client of `tether serve`: one keep-alive connection, JSON requests, retries on 503, typed errors."""
+"""HTTP client of `tether serve`: one keep-alive connection, msgpack (or JSON) requests, retries on 503, typed
+errors."""
 
 from __future__ import annotations
 
@@ -32,7 +33,14 @@ from .errors import (
     TetherError,
     TetherTimeoutError,
 )
-from .images import ImageLike, encode_image
+from .images import ImageLike, encode_image, image_bytes
+
+try:  # a declared dependency; without it the client sends JSON
+    import msgpack
+except ImportError:  # pragma: no cover - exercised only without the package
+    msgpack = None  # type: ignore[assignment]
+
+MSGPACK = "application/msgpack"
 
 REQUEST_ID_HEADER = "X-Tether-Request-ID"
 # Fields every /act answer has; the others come from the safety wedges the server runs.
@@ -106,7 +114,34 @@ class _Response:
         return self.headers.get(name.lower())
 
     def json(self) -> Any:
-        return self.parsed if self.parsed is not None else json.loads(self.body.decode("utf-8"))
+        """The body decoded: msgpack when the server said so (``Content-Type: application/msgpack``), else JSON."""
+        if self.parsed is not None:
+            return self.parsed
+        if msgpack is not None and (self.header("Content-Type") or "").split(";")[0].strip().lower() == MSGPACK:
+            try:
+                return msgpack.unpackb(self.body, raw=False)
+            except (msgpack.ExtraData, msgpack.FormatError, msgpack.StackError, ValueError) as e:
+                raise ValueError(f"malformed msgpack body: {e}") from e
+        return json.loads(self.body.decode("utf-8"))
+
+
+class _NoDelay:
+    """Sets TCP_NODELAY once connected: http.client sends the header and the body in two writes, and Nagle would
+    hold the body's last segment until the server acknowledges the header."""
+
+    sock: Any
+
+    def connect(self) -> None:
+        super().connect()  # type: ignore[misc]
+        self.sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+
+
+class _HTTPConnection(_NoDelay, http.client.HTTPConnection):
+    pass
+
+
+class _HTTPSConnection(_NoDelay, http.client.HTTPSConnection):
+    pass
 
 
 class Episode:
@@ -161,6 +196,10 @@ class TetherClient:
         max_backoff: cap of the exponential delay.
         max_retry_wait: bound on the total time slept in retries of one call; a retry that would exceed it is
             not attempted.
+        body_format: how ``/act`` bodies travel over HTTP: ``"msgpack"`` (``Content-Type: application/msgpack``,
+            images as raw bytes, the answer in msgpack too) or ``"json"`` (images in base64). ``None``: msgpack when
+            the ``msgpack`` package is installed (it is a dependency of ``tether-client``), else JSON. Use
+            ``"json"`` with servers older than msgpack bodies.
     """
 
     def __init__(
@@ -175,7 +214,14 @@ class TetherClient:
         transport: str = "http",
         zmq_url: Optional[str] = None,
         zmq_server_key: Optional[str] = None,
+        body_format: Optional[str] = None,
     ) -> None:
+        if body_format is None:
+            body_format = "msgpack" if msgpack is not None else "json"
+        if body_format not in ("msgpack", "json"):
+            raise ValueError(f"body_format must be 'msgpack' or 'json', got {body_format!r}")
+        if body_format == "msgpack" and msgpack is None:
+            raise ValueError("body_format='msgpack' needs the msgpack package: pip install msgpack")
         if transport not in ("http", "zmq"):
             raise ValueError(f"transport must be 'http' or 'zmq', got {transport!r}")
         if transport == "zmq" and not zmq_url:
@@ -203,6 +249,7 @@ class TetherClient:
         self._lock = threading.Lock()
         self._local = threading.local()  # per-thread current episode id
         self.transport = transport
+        self.body_format = body_format
         self._zmq = None  # transport="zmq": act() goes over this channel; everything else stays on HTTP
         if transport == "zmq":
             from .zmq_transport import ZmqChannel
@@ -232,7 +279,7 @@ class TetherClient:
 
     def _connection(self) -> http.client.HTTPConnection:
         if self._conn is None:
-            cls = http.client.HTTPSConnection if self._scheme == "https" else http.client.HTTPConnection
+            cls = _HTTPSConnection if self._scheme == "https" else _HTTPConnection
             self._conn = cls(self._host, self._port, timeout=self.timeout)
             self._conn_uses = 0
         return self._conn
@@ -429,9 +476,8 @@ class TetherClient:
         if not np.all(np.isfinite(state_array)):
             raise ValueError("state contains NaN or Inf")
         payload: Dict[str, Any] = {"instruction": instruction, "state": [float(v) for v in state_array]}
-        encode: Any = encode_image
-        if self._zmq is not None:
-            from .zmq_transport import encode_image_zmq as encode
+        binary = self._zmq is not None or self.body_format == "msgpack"
+        encode: Any = image_bytes if binary else encode_image  # msgpack carries bytes: no base64
         if image is not None:
             payload["image"] = encode(image)
         if images is not None:
@@ -456,7 +502,10 @@ class TetherClient:
             payload["rtc"] = rtc
         elif inference_delay is not None:
             raise ValueError("inference_delay needs prev_actions")
-        headers = {"Content-Type": "application/json"}
+        if self._zmq is None and self.body_format == "msgpack":
+            headers = {"Content-Type": MSGPACK, "Accept": MSGPACK}
+        else:
+            headers = {"Content-Type": "application/json"}
         if request_id is not None:
             headers[REQUEST_ID_HEADER] = request_id
         body: Any
@@ -466,6 +515,8 @@ class TetherClient:
             if request_id is not None:
                 payload["request_id"] = request_id
             body = payload
+        elif self.body_format == "msgpack":
+            body = msgpack.packb(payload, use_bin_type=True)
         else:
             body = json.dumps(payload, separators=(",", ":"), allow_nan=False).encode("utf-8")
 

@@ -1,6 +1,6 @@
 """The Tether ZMQ transport of :class:`tether_client.TetherClient` (``transport="zmq"``): /act requests as msgpack over a
-DEALER socket to ``tether serve --zmq-port``, optionally CURVE-encrypted. pyzmq and msgpack are imported only here, so
-the HTTP client works without them (``pip install tether-client[zmq]``)."""
+DEALER socket to ``tether serve --zmq-port``, optionally CURVE-encrypted. pyzmq is imported only here, so
+the HTTP client works without it (``pip install tether-client[zmq]``)."""
 
 from __future__ import annotations
 
@@ -10,7 +10,6 @@ import threading
 from typing import Any, Dict, Optional, Tuple
 
 from .errors import TetherConnectionError, TetherError, TetherTimeoutError
-from .images import ImageLike, image_bytes
 
 try:  # optional dependencies
     import msgpack
@@ -18,12 +17,6 @@ try:  # optional dependencies
 except ImportError as e:  # pragma: no cover - exercised only without the extra
     raise ImportError("transport='zmq' needs pyzmq and msgpack: pip install 'tether-client[zmq]'") from e
 
-
-
-def encode_image_zmq(image: ImageLike) -> Any:
-    """An image as the ZMQ protocol carries it: PNG/JPEG bytes as they are, pixels as ``{"data": bytes, "shape"}``
-    (no base64 on the way: msgpack carries bytes)."""
-    return image_bytes(image)
 
 
 class ZmqChannel:
@@ -43,6 +36,8 @@ class ZmqChannel:
         if self._socket is None:
             s = self._context.socket(zmq.DEALER)
             s.setsockopt(zmq.LINGER, 0)
+            # The wait for an answer is a receive timeout: polling built a zmq.Poller per call (0.1 ms).
+            s.setsockopt(zmq.RCVTIMEO, max(1, int(self.timeout * 1000)))
             if self.server_key:
                 public, secret = zmq.curve_keypair()
                 s.curve_publickey, s.curve_secretkey = public, secret
@@ -67,15 +62,15 @@ class ZmqChannel:
             payload = dict(payload, id=request_id)
             try:
                 sock.send(msgpack.packb(payload, use_bin_type=True))
-                deadline_ms = int(self.timeout * 1000)
                 while True:
-                    if not sock.poll(deadline_ms, zmq.POLLIN):
+                    try:
+                        frames = sock.recv_multipart()
+                    except zmq.Again:
                         # The socket may hold a late reply: start afresh so it is never read as the next answer.
-                        self._socket.close(0)
+                        sock.close(0)
                         self._socket = None
                         raise TetherTimeoutError(f"/act: no answer from {self.endpoint} within {self.timeout} s",
-                                                 code="timeout")
-                    frames = sock.recv_multipart()
+                                                 code="timeout") from None
                     reply = msgpack.unpackb(frames[-1], raw=False)
                     if isinstance(reply, dict) and reply.get("id") not in (None, request_id):
                         continue  # a late answer to an earlier request
