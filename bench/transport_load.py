@@ -1,16 +1,27 @@
 #!/usr/bin/env python3
 """The same load on every transport of one `tether serve`: throughput, p50 and p99 per transport at 1 and 16 clients,
-against the engine's own latency (`tether bench` on the same checkpoint) measured in the same run.
+against the engine's own latency on the same input, measured in the same run.
 
 Usage: .venv/bin/python bench/transport_load.py [--checkpoint models/demo/smolvla-demo] [--clients 1,16]
-                                                [--requests 200] [--transports http,kserve,openpi,gr00t,zmq]
+                                                [--requests 200] [--transports http,http-json,kserve,openpi,gr00t,zmq]
 
-Each client is its own process holding one connection (the real client library where one exists: openpi-client's
-WebsocketClientPolicy, tritonclient's InferenceServerClient, Tether's TetherClient over ZMQ; a REQ socket written from
-the protocol for GR00T; a keep-alive http.client for /act). Every request carries the same 224x224 RGB frame as raw
-uint8 pixels (no image codec on either side), the same state and instruction, and its own seed. The server runs with
---batch-timeout-ms 0, so a lone client never waits for company and 16 clients batch what queued. Latency is measured
-at the client, from the call to its return, and includes the client library's own encoding and decoding.
+Each client is its own process holding one connection, with the real client library where one exists: Tether's
+TetherClient over HTTP (`http`: msgpack body, raw image bytes) and over ZMQ (`zmq`), openpi-client's
+WebsocketClientPolicy, tritonclient's InferenceServerClient; a REQ socket written from the protocol for GR00T, and for
+`http-json` a keep-alive http.client (with TCP_NODELAY, as curl) sending the JSON body with the frame in base64, as a
+client without msgpack would. Every request carries the same 224x224 RGB frame as raw uint8 pixels (no image codec on
+either side), the same state and instruction, and its own seed. The server runs with --batch-timeout-ms 0, so a lone
+client never waits for company and 16 clients batch what queued. Latency is measured at the client, from the call to
+its return, and includes the client library's own encoding and decoding.
+
+The engine baseline is `tether bench` (Policy::predict at batch 1, nothing else) on the very pixels the transports send:
+the frame is written to a PNG (lossless) that bench decodes once, before its timed runs, so every timed run starts from
+the same 224x224 RGB image a transport hands to the engine, with the same state and instruction. It is taken right
+before and right after each transport's 1-client run, and the mean of the two is the baseline, so a change in the
+machine's load between transports hits both sides. "p50 over engine" is everything the server and the client add: the
+client library, the wire, the server's decoding and encoding, the batcher's hand-off to the inference thread, the
+wedges and the metrics. Where the reply says so (HTTP, Tether ZMQ, openpi), "server p50" is the server's own measure
+of a request, from its first byte read to its answer, so the rest of the overhead is the client library and the wire.
 """
 
 from __future__ import annotations
@@ -22,11 +33,15 @@ import json
 import multiprocessing as mp
 import os
 import re
+import socket
+import struct
 import subprocess
 import sys
+import tempfile
 import time
+import zlib
 from pathlib import Path
-from typing import Callable, Dict, List
+from typing import Callable, Dict, List, Optional, Tuple
 
 import numpy as np
 
@@ -41,20 +56,42 @@ def frame() -> np.ndarray:
     return np.stack([x % 256, y % 256, (x + y) % 256], axis=-1).astype(np.uint8)
 
 
-def make_client(transport: str, host: str, ports: Dict[str, int], camera: str, state: List[float]) -> Callable[[int], None]:
+def write_png(path: Path, rgb: np.ndarray) -> None:
+    """An 8-bit RGB PNG of `rgb`, lossless, so `tether bench` decodes exactly these pixels."""
+    def chunk(kind: bytes, data: bytes) -> bytes:
+        return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data) & 0xFFFFFFFF)
+    h, w, _ = rgb.shape
+    rows = b"".join(b"\x00" + rgb[y].tobytes() for y in range(h))
+    path.write_bytes(b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", struct.pack(">IIBBBBB", w, h, 8, 2, 0, 0, 0)) +
+                     chunk(b"IDAT", zlib.compress(rows)) + chunk(b"IEND", b""))
+
+
+# Each act() returns the server's own total for the request (ms) when the reply carries it, else None.
+def make_client(transport: str, host: str, ports: Dict[str, int], camera: str,
+                state: List[float]) -> Callable[[int], Optional[float]]:
     img = frame()
     st = np.asarray(state, np.float32)
     if transport == "http":
+        from tether_client import TetherClient
+        client = TetherClient(f"http://{host}:{ports['http']}", api_key="", timeout=60, body_format="msgpack")
+
+        def act(seed: int) -> Optional[float]:
+            return client.act(images={camera: img}, state=state, instruction=INSTRUCTION, seed=seed).latency_ms["total"]
+        return act
+    if transport == "http-json":
         conn = http.client.HTTPConnection(host, ports["http"], timeout=60)
+        conn.connect()
+        conn.sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
         raw = {"data": base64.b64encode(img.tobytes()).decode(), "shape": list(img.shape)}
 
-        def act(seed: int) -> None:
+        def act(seed: int) -> Optional[float]:
             body = json.dumps({"instruction": INSTRUCTION, "state": state, "images": {camera: raw}, "seed": seed})
             conn.request("POST", "/act", body, {"Content-Type": "application/json"})
             r = conn.getresponse()
             data = r.read()
             if r.status != 200:
                 raise RuntimeError(f"/act {r.status}: {data[:200]!r}")
+            return json.loads(data)["latency_ms"]["total"]
         return act
     if transport == "kserve":
         import tritonclient.http as triton
@@ -62,7 +99,7 @@ def make_client(transport: str, host: str, ports: Dict[str, int], camera: str, s
         name = client.get_server_metadata()  # warms the connection
         model = ports["model_name"]
 
-        def act(seed: int) -> None:
+        def act(seed: int) -> Optional[float]:
             inputs = [triton.InferInput("instruction", [1], "BYTES"), triton.InferInput("state", [1, len(st)], "FP32"),
                       triton.InferInput(f"image.{camera}", [1, *img.shape], "UINT8"), triton.InferInput("seed", [1], "INT64")]
             inputs[0].set_data_from_numpy(np.array([INSTRUCTION.encode()], dtype=np.object_))
@@ -71,15 +108,17 @@ def make_client(transport: str, host: str, ports: Dict[str, int], camera: str, s
             inputs[3].set_data_from_numpy(np.array([seed], np.int64))
             result = client.infer(model, inputs, outputs=[triton.InferRequestedOutput("actions")])
             result.as_numpy("actions")
+            return None
         del name
         return act
     if transport == "openpi":
         from openpi_client import websocket_client_policy
         policy = websocket_client_policy.WebsocketClientPolicy(host, ports["openpi"])
 
-        def act(seed: int) -> None:
+        def act(seed: int) -> Optional[float]:
             del seed  # openpi's protocol has no seed: the server derives one per request
-            policy.infer({"observation/image": img, "observation/state": st, "prompt": INSTRUCTION})
+            reply = policy.infer({"observation/image": img, "observation/state": st, "prompt": INSTRUCTION})
+            return reply["tether"]["latency_ms"]["total"]
         return act
     if transport == "gr00t":
         import msgpack
@@ -93,45 +132,47 @@ def make_client(transport: str, host: str, ports: Dict[str, int], camera: str, s
             np.save(buf, a, allow_pickle=False)
             return {"__ndarray_class__": True, "as_npy": buf.getvalue()}
 
-        def act(seed: int) -> None:
+        def act(seed: int) -> Optional[float]:
             obs = {"video": {camera: npy(img[None, None])}, "state": {"state": npy(st[None, None])},
                    "language": {"task": [[INSTRUCTION]]}}
             sock.send(msgpack.packb({"endpoint": "get_action", "data": {"observation": obs, "options": {"seed": seed}}}))
             reply = msgpack.unpackb(sock.recv())
             if isinstance(reply, dict) and "error" in reply:
                 raise RuntimeError(reply["error"])
+            return None
         return act
     if transport == "zmq":
         from tether_client import TetherClient
         client = TetherClient(f"http://{host}:{ports['http']}", transport="zmq", zmq_url=f"tcp://{host}:{ports['zmq']}")
 
-        def act(seed: int) -> None:
-            client.act(img, state=state, instruction=INSTRUCTION, seed=seed)
+        def act(seed: int) -> Optional[float]:
+            return client.act(img, state=state, instruction=INSTRUCTION, seed=seed).latency_ms["total"]
         return act
     raise SystemExit(f"unknown transport {transport}")
 
 
-def client_process(args) -> List[float]:
+def client_process(args) -> Tuple[List[float], List[float]]:
     transport, host, ports, camera, state, requests, index, barrier = args
     act = make_client(transport, host, ports, camera, state)
-    act(index * 100000)  # connection set-up and first request: not timed
+    for warm in range(3):  # connection set-up and first requests: not timed
+        act(index * 100000 + 90000 + warm)
     barrier.wait()
-    times = []
+    times, server = [], []
     for i in range(requests):
         t0 = time.perf_counter()
-        act(index * 100000 + i + 1)
+        server_ms = act(index * 100000 + i + 1)
         times.append((time.perf_counter() - t0) * 1000)
-    return times
+        if server_ms is not None:
+            server.append(server_ms)
+    return times, server
 
 
-def engine_latency(binary: Path, checkpoint: str) -> float:
-    out = subprocess.run([str(binary), "bench", checkpoint, "--iterations", "100", "--json"], check=True,
-                         capture_output=True, text=True).stdout
-    j = json.loads(out)
-    for key in ("p50_ms", "latency_p50_ms"):
-        if key in j:
-            return float(j[key])
-    return float(j["latency_ms"]["p50"])
+def engine_latency(binary: Path, checkpoint: str, camera: str, png: Path, state: List[float]) -> float:
+    """p50 of `tether bench` on the transports' frame, state and instruction (the PNG is decoded before timing)."""
+    out = subprocess.run([str(binary), "bench", checkpoint, "--iterations", "100", "--json",
+                          "--image", f"{camera}={png}", "--state=" + ",".join(str(v) for v in state),
+                          "--instruction", INSTRUCTION], check=True, capture_output=True, text=True).stdout
+    return float(json.loads(out)["latency_ms"]["p50"])
 
 
 def main() -> None:
@@ -139,14 +180,13 @@ def main() -> None:
     ap.add_argument("--checkpoint", default=str(REPO / "models/demo/smolvla-demo"))
     ap.add_argument("--clients", default="1,16")
     ap.add_argument("--requests", type=int, default=200, help="requests per client at 1 client (divided at more)")
-    ap.add_argument("--transports", default="http,kserve,openpi,gr00t,zmq")
+    ap.add_argument("--transports", default="http,http-json,kserve,openpi,gr00t,zmq")
     ap.add_argument("--binary", default=str(REPO / "build/release/tether"))
     a = ap.parse_args()
     binary = Path(a.binary)
     transports = a.transports.split(",")
     clients = [int(c) for c in a.clients.split(",")]
 
-    engine_p50 = engine_latency(binary, a.checkpoint)
     cmd = [str(binary), "serve", a.checkpoint, "--port", "0", "--batch-timeout-ms", "0", "--max-batch", "16",
            "--openpi-port", "0", "--gr00t-port", "0", "--zmq-port", "0", "--model-name", "demo"]
     server = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
@@ -177,12 +217,17 @@ def main() -> None:
         camera = config["cameras"][0].replace("observation.images.", "")
         state = [0.0] * int(config["state_dim"])
 
+        png = Path(tempfile.mkdtemp(prefix="tether_transport_load_")) / "frame.png"
+        write_png(png, frame())
+
         cpu = next((l.split(":", 1)[1].strip() for l in open("/proc/cpuinfo") if l.startswith("model name")), "?")
-        print(f"checkpoint {a.checkpoint}; CPU {cpu}, {os.cpu_count()} cores; engine alone (tether bench, batch 1): "
-              f"p50 {engine_p50:.2f} ms")
-        print("| transport | clients | requests | throughput (req/s) | p50 (ms) | p99 (ms) | p50 over engine (ms) |")
-        print("|---|---:|---:|---:|---:|---:|---:|")
+        print(f"checkpoint {a.checkpoint}; CPU {cpu}, {os.cpu_count()} cores")
+        print("| transport | clients | requests | throughput (req/s) | p50 (ms) | p99 (ms) | engine p50 (ms) | "
+              "p50 over engine (ms) | server p50 (ms) |")
+        print("|---|---:|---:|---:|---:|---:|---:|---:|---:|")
         for transport in transports:
+            engine_before = engine_latency(binary, a.checkpoint, camera, png, state)
+            engine_p50 = engine_before
             for n in clients:
                 per_client = max(10, a.requests // n)
                 with mp.Manager() as manager:
@@ -192,12 +237,16 @@ def main() -> None:
                         results = pool.map(client_process, [(transport, host, ports, camera, state, per_client, i,
                                                              barrier) for i in range(n)])
                         wall = time.perf_counter() - t0
-                lat = np.array([t for r in results for t in r])
+                if n == clients[0]:  # the engine again right after: the baseline is the mean of both sides
+                    engine_p50 = (engine_before + engine_latency(binary, a.checkpoint, camera, png, state)) / 2
+                lat = np.array([t for r, _ in results for t in r])
+                server_ms = [t for _, s in results for t in s]
                 # Throughput over the timed part: requests / the slowest client's total.
-                span = max(sum(r) for r in results) / 1000
+                span = max(sum(r) for r, _ in results) / 1000
                 p50, p99 = np.percentile(lat, 50), np.percentile(lat, 99)
+                server_p50 = f"{np.percentile(server_ms, 50):.2f}" if server_ms else "-"
                 print(f"| {transport} | {n} | {lat.size} | {lat.size / span:.1f} | {p50:.2f} | {p99:.2f} | "
-                      f"{p50 - engine_p50:+.2f} |", flush=True)
+                      f"{engine_p50:.2f} | {p50 - engine_p50:+.2f} | {server_p50} |", flush=True)
                 del wall
     finally:
         server.terminate()
