@@ -76,6 +76,9 @@ net::awaitable<void> HttpSessions::serve(tcp::socket socket) {
 net::awaitable<void> HttpSessions::session(tcp::socket socket) {
   beast::tcp_stream stream(std::move(socket));
   beast::flat_buffer buffer;
+  // Beast reads as much as the buffer has room for, at least 512 bytes: left at its initial size, a 200 KB /act or
+  // KServe body took ~400 reads and 1.2 ms. With 64 KiB of room (Beast's cap per read) it takes a few.
+  buffer.reserve(64 * 1024);
   beast::error_code ec;
   for (;;) {
     http::request_parser<http::string_body> parser;
