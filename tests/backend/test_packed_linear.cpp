@@ -125,7 +125,7 @@ TEST(PackedLinear, Fp32WeightsThatAreBf16ValuesGiveTheFloat32PanelsResultExactly
   std::vector<float> y(std::size_t(m * n)), want(std::size_t(m * n));
   lin.forward(x.data(), m, y.data());
   const detail::PanelKernel& kernel = detail::panel_kernel();
-  const std::vector<float> panels = detail::pack_f32_panels(w.data(), n, k, kernel.panel_width);
+  const auto panels = detail::pack_f32_panels(w.data(), n, k, kernel.panel_width);
   const std::vector<float> bias = detail::pad_bias(b.data(), n, kernel.panel_width);
   kernel.f32({x.data(), m, k, k, panels.data(), n, bias.data(), want.data(), n, false});
   EXPECT_EQ(y, want);

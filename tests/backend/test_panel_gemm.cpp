@@ -12,6 +12,7 @@
 
 using namespace tether;
 using namespace tether::cpu::detail;
+using tether::cpu::PanelBuffer;
 
 namespace {
 
@@ -32,8 +33,8 @@ std::vector<float> random_vec(std::size_t n, std::mt19937& g) {
 }
 
 struct Packed {
-  std::vector<float> f32;
-  std::vector<uint16_t> half;
+  PanelBuffer<float> f32;
+  PanelBuffer<uint16_t> half;
   std::vector<float> bias;
   const void* data(PanelType t) const { return t == PanelType::f32 ? static_cast<const void*>(f32.data()) : half.data(); }
 };

@@ -100,8 +100,8 @@ struct PackedLinear::Impl {
   LinearPath path = LinearPath::onednn_f32;
   memory weights, bias;  // oneDNN paths
   // Panel GEMM path: panels in the weight dtype, the bias zero-padded to whole panels.
-  std::vector<uint16_t> panels;
-  std::vector<float> panels_f32;
+  PanelBuffer<uint16_t> panels;
+  PanelBuffer<float> panels_f32;
   std::vector<float> panel_bias;
   detail::PanelGemmFn panel_fn = nullptr;
 

@@ -11,9 +11,9 @@ namespace {
 
 // `column_slot(j)` is where column j of a panel row goes (the identity, or the bf16 pairing).
 template <class T, class Convert, class Slot>
-std::vector<T> pack_panels(const float* w, int64_t n, int64_t k, int nr, Convert convert, Slot column_slot) {
+PanelBuffer<T> pack_panels(const float* w, int64_t n, int64_t k, int nr, Convert convert, Slot column_slot) {
   const int64_t num_panels = (n + nr - 1) / nr;
-  std::vector<T> out(std::size_t(num_panels * nr * k), T{});
+  PanelBuffer<T> out(std::size_t(num_panels * nr * k), T{});
   for (int64_t row = 0; row < n; ++row) {
     T* dst = out.data() + (row / nr) * k * nr + column_slot(int(row % nr));
     const float* src = w + row * k;
@@ -26,11 +26,11 @@ int same_slot(int j) { return j; }
 
 }  // namespace
 
-std::vector<float> pack_f32_panels(const float* w, int64_t n, int64_t k, int nr) {
+PanelBuffer<float> pack_f32_panels(const float* w, int64_t n, int64_t k, int nr) {
   return pack_panels<float>(w, n, k, nr, [](float v) { return v; }, same_slot);
 }
 
-std::vector<uint16_t> pack_half_panels(const float* w, int64_t n, int64_t k, int nr, PanelType type) {
+PanelBuffer<uint16_t> pack_half_panels(const float* w, int64_t n, int64_t k, int nr, PanelType type) {
   if (type == PanelType::bf16) {
     const int half = nr / 2;
     auto paired = [half](int j) { return j < half ? 2 * j : 2 * (j - half) + 1; };

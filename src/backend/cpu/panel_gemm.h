@@ -11,6 +11,7 @@
 #include <vector>
 
 #include "backend/cpu/cpu_features.h"
+#include "backend/cpu/huge_pages.h"
 
 namespace tether::cpu::detail {
 
@@ -40,8 +41,8 @@ struct PanelKernel {
 // of bf16 / f16 (rounded to nearest even). bf16 rows are paired: the 32-bit word j of a panel row holds column j in
 // its low half and column j + panel_width / 2 in its high half, so a kernel widens a whole row with a shift and a
 // mask instead of two zero-extensions. The bias is zero-padded the same way (null: zeros).
-std::vector<float> pack_f32_panels(const float* w, int64_t n, int64_t k, int panel_width);
-std::vector<uint16_t> pack_half_panels(const float* w, int64_t n, int64_t k, int panel_width, PanelType type);
+PanelBuffer<float> pack_f32_panels(const float* w, int64_t n, int64_t k, int panel_width);
+PanelBuffer<uint16_t> pack_half_panels(const float* w, int64_t n, int64_t k, int panel_width, PanelType type);
 std::vector<float> pad_bias(const float* bias, int64_t n, int panel_width);
 
 // C[m, n] = A[m, k] op(B) with the panel kernel's fixed-order chains, for operands that change every call (attention's

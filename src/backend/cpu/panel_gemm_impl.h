@@ -8,6 +8,7 @@
 
 #include <omp.h>
 
+#include <atomic>
 #include <cstring>
 
 #include "backend/cpu/panel_gemm.h"
@@ -80,59 +81,72 @@ struct PanelGemm {
     }
   }
 
+  // Columns [p0, p1) of the output, as panels: every k block in order, so each element's chain is the same whichever
+  // thread runs the range and however the panels were cut into ranges.
   template <class T>
-  static void run(const PanelGemmArgs& a) {
+  static void run_panels(const PanelGemmArgs& a, int64_t p0, int64_t p1) {
     const T* panels = static_cast<const T*>(a.panels);
-    const int64_t num_panels = (a.n + NR - 1) / NR;
-    const int64_t flops = 2 * a.m * a.n * a.k;
-    const int threads = flops < (int64_t(1) << 20) ? 1 : int(min(omp_get_max_threads(), num_panels));
-    // Each thread owns a fixed range of panels (columns), so no two threads touch the same output element and
-    // no reduction is ever split: the result does not depend on the thread count.
-#pragma omp parallel num_threads(threads)
-    {
-      const int t = omp_get_thread_num(), nt = omp_get_num_threads();
-      const int64_t p0 = num_panels * t / nt, p1 = num_panels * (t + 1) / nt;
-      alignas(64) float edge[MR * NR];  // the last panel's tile when N is not a multiple of NR
-      for (int64_t k0 = 0; k0 < a.k; k0 += KC<T>) {
-        const int64_t kc = min(KC<T>, a.k - k0);
-        const bool first = k0 == 0, last = k0 + kc == a.k;
-        const bool load_y = !first || a.accumulate;
-        // Row blocks and the tiles within a block are split evenly (50 rows: 5 tiles of 10 at MR = 12, not 4 of 12
-        // and one of 2, whose weight loads would serve 4 FMAs per k step).
-        const int64_t blocks = (a.m + MC - 1) / MC;
-        for (int64_t b = 0; b < blocks; ++b) {
-          const int64_t i0 = a.m * b / blocks, mc = a.m * (b + 1) / blocks - i0;
-          const int64_t tiles = (mc + MR - 1) / MR;
-          for (int64_t p = p0; p < p1; ++p) {
-            const T* panel = panels + p * a.k * NR + k0 * NR;
-            const float* bias = a.bias + p * NR;
-            const int64_t cols = min(NR, a.n - p * NR);
-            // The next panel's block of the same k range, which the first tile fetches (the last panel's block has
-            // no successor here; the next k range starts with a fresh stream).
-            const T* next = p + 1 < p1 ? panel + a.k * NR : nullptr;
-            for (int64_t t_row = 0; t_row < tiles; ++t_row) {
-              const int64_t i = i0 + mc * t_row / tiles;
-              const int rows = int(i0 + mc * (t_row + 1) / tiles - i);
-              const float* x = a.x + i * a.lda + k0;
-              float* y = a.y + i * a.ldy + p * NR;
-              const T* prefetch = t_row == 0 ? next : nullptr;
-              if (cols == NR) {
-                tile_rows<T, MR>(rows, x, a.lda, panel, kc, bias, y, a.ldy, load_y, last, prefetch);
-              } else {
-                for (int r = 0; r < rows; ++r) {
-                  if (load_y) std::memcpy(edge + r * NR, y + r * a.ldy, std::size_t(cols) * sizeof(float));
-                  std::memset(edge + r * NR + cols, 0, std::size_t(NR - cols) * sizeof(float));
-                }
-                tile_rows<T, MR>(rows, x, a.lda, panel, kc, bias, edge, NR, load_y, last, prefetch);
-                for (int r = 0; r < rows; ++r)
-                  std::memcpy(y + r * a.ldy, edge + r * NR, std::size_t(cols) * sizeof(float));
+    alignas(64) float edge[MR * NR];  // the last panel's tile when N is not a multiple of NR
+    for (int64_t k0 = 0; k0 < a.k; k0 += KC<T>) {
+      const int64_t kc = min(KC<T>, a.k - k0);
+      const bool first = k0 == 0, last = k0 + kc == a.k;
+      const bool load_y = !first || a.accumulate;
+      // Row blocks and the tiles within a block are split evenly (50 rows: 5 tiles of 10 at MR = 12, not 4 of 12
+      // and one of 2, whose weight loads would serve 4 FMAs per k step).
+      const int64_t blocks = (a.m + MC - 1) / MC;
+      for (int64_t b = 0; b < blocks; ++b) {
+        const int64_t i0 = a.m * b / blocks, mc = a.m * (b + 1) / blocks - i0;
+        const int64_t tiles = (mc + MR - 1) / MR;
+        for (int64_t p = p0; p < p1; ++p) {
+          const T* panel = panels + p * a.k * NR + k0 * NR;
+          const float* bias = a.bias + p * NR;
+          const int64_t cols = min(NR, a.n - p * NR);
+          // The next panel's block of the same k range, which the first tile fetches (the range's last panel has
+          // no successor here; the next k range starts with a fresh stream).
+          const T* next = p + 1 < p1 ? panel + a.k * NR : nullptr;
+          for (int64_t t_row = 0; t_row < tiles; ++t_row) {
+            const int64_t i = i0 + mc * t_row / tiles;
+            const int rows = int(i0 + mc * (t_row + 1) / tiles - i);
+            const float* x = a.x + i * a.lda + k0;
+            float* y = a.y + i * a.ldy + p * NR;
+            const T* prefetch = t_row == 0 ? next : nullptr;
+            if (cols == NR) {
+              tile_rows<T, MR>(rows, x, a.lda, panel, kc, bias, y, a.ldy, load_y, last, prefetch);
+            } else {
+              for (int r = 0; r < rows; ++r) {
+                if (load_y) std::memcpy(edge + r * NR, y + r * a.ldy, std::size_t(cols) * sizeof(float));
+                std::memset(edge + r * NR + cols, 0, std::size_t(NR - cols) * sizeof(float));
               }
+              tile_rows<T, MR>(rows, x, a.lda, panel, kc, bias, edge, NR, load_y, last, prefetch);
+              for (int r = 0; r < rows; ++r)
+                std::memcpy(y + r * a.ldy, edge + r * NR, std::size_t(cols) * sizeof(float));
             }
           }
         }
       }
     }
   }
+
+  template <class T>
+  static void run(const PanelGemmArgs& a) {
+    const int64_t num_panels = (a.n + NR - 1) / NR;
+    const int64_t flops = 2 * a.m * a.n * a.k;
+    const int threads = flops < (int64_t(1) << 20) ? 1 : int(min(omp_get_max_threads(), num_panels));
+    if (threads == 1) return run_panels<T>(a, 0, num_panels);
+    // Threads take ranges of panels (columns) from a shared counter, so no two threads touch the same output element
+    // and no reduction is ever split: the result does not depend on the thread count. Ranges are handed out as
+    // threads become free because a static split leaves the faster thread idle at the end of every GEMM (cores of a
+    // shared machine do not run at one speed). Each range re-reads the rows of x, so there are only a few per thread.
+    const int64_t range = (num_panels + kRangesPerThread * threads - 1) / (kRangesPerThread * threads);
+    std::atomic<int64_t> next_panel{0};
+#pragma omp parallel num_threads(threads)
+    for (;;) {
+      const int64_t p0 = next_panel.fetch_add(range, std::memory_order_relaxed);
+      if (p0 >= num_panels) break;
+      run_panels<T>(a, p0, min(p0 + range, num_panels));
+    }
+  }
+  static constexpr int64_t kRangesPerThread = 4;
 
   static void run_f32(const PanelGemmArgs& a) { run<float>(a); }
   static void run_bf16(const PanelGemmArgs& a) { run<uint16_t>(a); }
