@@ -29,14 +29,16 @@ host_packages=(
 # ocl-icd-opencl-dev (Debian builds arm64 oneDNN without the OpenCL GPU runtime, so its dnnl-config.cmake does not
 # look for OpenCL). Two -dev packages are not co-installable with their amd64 twins and are handled below (their
 # libraries are, and are installed here): libdnnl-dev (both ship /usr/include/oneapi/dnnl/dnnl_config.h, with
-# different contents) and libonig-dev (not Multi-Arch: same, so dpkg allows only one architecture of it).
+# different contents), libonig-dev and libsimdjson-dev (not Multi-Arch: same, so dpkg allows only one architecture of
+# each).
 arm64_packages=(
-  libdnnl2 libonig5 libicu-dev libspng-dev libturbojpeg0-dev libboost1.81-dev
+  libdnnl2 libonig5 libsimdjson14 libicu-dev libspng-dev libturbojpeg0-dev libboost1.81-dev
   libcurl4-openssl-dev libssl-dev libgtest-dev libgmock-dev libzmq3-dev cppzmq-dev
 )
 # The -dev packages unpacked into $sysroot: "dev-package runtime-package library-name". libmsgpuck-dev is not
 # Multi-Arch either and has no runtime package (a static library): "-" takes the version of the installed amd64 twin.
-sysroot_packages=("libdnnl-dev libdnnl2 libdnnl" "libonig-dev libonig5 libonig" "libmsgpuck-dev - libmsgpuck")
+sysroot_packages=("libdnnl-dev libdnnl2 libdnnl" "libonig-dev libonig5 libonig" "libsimdjson-dev libsimdjson14 libsimdjson"
+  "libmsgpuck-dev - libmsgpuck")
 
 need_update=0
 if ! dpkg --print-foreign-architectures | grep -qx arm64; then

@@ -13,7 +13,7 @@ packages=(
   # Debian's dnnl-config.cmake calls find_package(OpenCL REQUIRED) (libdnnl is built with the OpenCL GPU runtime);
   # the package is only a Recommends of libdnnl-dev, which --no-install-recommends skips.
   ocl-icd-opencl-dev
-  nlohmann-json3-dev libcli11-dev
+  nlohmann-json3-dev libcli11-dev libsimdjson-dev
   libonig-dev libicu-dev libspng-dev libturbojpeg0-dev libboost1.81-dev
   libcurl4-openssl-dev libssl-dev
   libmsgpuck-dev libzmq3-dev cppzmq-dev

@@ -1,7 +1,13 @@
 // POST /act body parsing: strict schema, stable error codes, images decoded here so a bad one fails only its request.
 #include "serve/act_request.h"
 
+#include <simdjson.h>
+
+#include <algorithm>
 #include <cmath>
+#include <cstdint>
+#include <memory>
+#include <vector>
 
 #include "serve/base64.h"
 #include "vision/image.h"
@@ -13,8 +19,6 @@ namespace {
 using J = nlohmann::json;  // request key order carries no meaning
 
 [[noreturn]] void fail(const std::string& code, const std::string& message) { throw HttpError(400, code, message); }
-
-std::string type_name(const J& v) { return v.type_name(); }
 
 void check_pixels(int64_t height, int64_t width, const std::string& where) {
   if (height < 1 || width < 1) fail("invalid_field", where + ": an image needs at least one pixel");
@@ -30,28 +34,78 @@ void check_state(const std::vector<float>& state, const models::ModelSpec& spec)
     if (!std::isfinite(state[i])) fail("invalid_state", "state[" + std::to_string(i) + "] is not a finite float32");
 }
 
-vision::Image decode_raw(const J& obj, const std::string& field) {
-  for (auto it = obj.begin(); it != obj.end(); ++it)
-    if (it.key() != "data" && it.key() != "shape")
-      fail("invalid_field", field + ": unexpected key '" + it.key() + "' (a raw image has only 'data' and 'shape')");
-  const auto data = obj.find("data");
-  const auto shape = obj.find("shape");
-  if (data == obj.end() || shape == obj.end())
+// The body is read with simdjson's DOM parser: it validates the whole document before any field is looked at, as
+// nlohmann did, so a request gets the same error whatever the order of its mistakes (the on-demand API validates only
+// what it reaches). A document simdjson refuses, or one with a repeated key, is read by nlohmann (parse_json below),
+// whose verdict and messages are the contract's, and handed back to simdjson as nlohmann writes it.
+using E = simdjson::dom::element;
+using Fields = std::vector<std::pair<std::string_view, E>>;
+
+// Thrown where nlohmann's reading must decide (a repeated key: nlohmann keeps the last value).
+struct ReadWithNlohmann {};
+
+std::string type_name(E v) {
+  switch (v.type()) {
+    case simdjson::dom::element_type::ARRAY: return "array";
+    case simdjson::dom::element_type::OBJECT: return "object";
+    case simdjson::dom::element_type::STRING: return "string";
+    case simdjson::dom::element_type::BOOL: return "boolean";
+    case simdjson::dom::element_type::NULL_VALUE: return "null";
+    default: return "number";
+  }
+}
+
+// An object's fields in key order, as nlohmann::json (a std::map) lists them, so the first of several faults is the
+// same one as before.
+Fields sorted_fields(simdjson::dom::object obj) {
+  Fields fields;
+  for (auto field : obj) fields.emplace_back(field.key, field.value);
+  std::sort(fields.begin(), fields.end(), [](const auto& a, const auto& b) { return a.first < b.first; });
+  for (std::size_t i = 1; i < fields.size(); ++i)
+    if (fields[i - 1].first == fields[i].first) throw ReadWithNlohmann{};
+  return fields;
+}
+
+// The field `key`, or nullopt when it is absent or null.
+std::optional<E> present(const Fields& fields, std::string_view key) {
+  for (const auto& [k, v] : fields)
+    if (k == key) return v.is_null() ? std::nullopt : std::optional<E>(v);
+  return std::nullopt;
+}
+
+bool is_integer(E v) { return v.is_int64() || v.is_uint64(); }
+
+// An integer's value, with values above INT64_MAX saturated (every range checked here is far below it).
+int64_t integer_value(E v) {
+  if (v.is_int64()) return int64_t(v.get_int64());
+  return int64_t(std::min<uint64_t>(v.get_uint64(), uint64_t(INT64_MAX)));
+}
+
+std::string_view string_value(E v) { return std::string_view(v.get_string()); }
+
+vision::Image decode_raw(simdjson::dom::object obj, const std::string& field) {
+  const Fields fields = sorted_fields(obj);
+  for (const auto& [key, value] : fields)
+    if (key != "data" && key != "shape")
+      fail("invalid_field", field + ": unexpected key '" + std::string(key) + "' (a raw image has only 'data' and 'shape')");
+  std::optional<E> data, shape;
+  for (const auto& [key, value] : fields) (key == "data" ? data : shape) = value;
+  if (!data || !shape)
     fail("invalid_field", field + ": a raw image needs both 'data' (base64 of uint8 RGB) and 'shape' ([H, W, 3])");
   if (!data->is_string()) fail("invalid_field", field + ".data: expected a base64 string, got " + type_name(*data));
-  if (!shape->is_array() || shape->size() != 3)
+  if (!shape->is_array() || simdjson::dom::array(*shape).size() != 3)
     fail("invalid_field", field + ".shape: expected [H, W, 3]");
   int64_t dims[3];
-  for (int i = 0; i < 3; ++i) {
-    const J& d = (*shape)[std::size_t(i)];
-    if (!d.is_number_integer() || d.get<int64_t>() < 1 || d.get<int64_t>() > 1'000'000)
+  int i = 0;
+  for (E d : simdjson::dom::array(*shape)) {
+    if (!is_integer(d) || integer_value(d) < 1 || integer_value(d) > 1'000'000)
       fail("invalid_field", field + ".shape[" + std::to_string(i) + "]: expected a positive integer");
-    dims[i] = d.get<int64_t>();
+    dims[i++] = integer_value(d);
   }
   if (dims[2] != 3) fail("invalid_field", field + ".shape: the last dimension must be 3 (RGB), got " + std::to_string(dims[2]));
   check_pixels(dims[0], dims[1], field + ".shape");
   std::string why;
-  auto bytes = base64_decode(data->get_ref<const std::string&>(), &why);
+  auto bytes = base64_decode(string_value(*data), &why);
   if (!bytes) fail("invalid_field", field + ".data: " + why);
   const auto expected = std::size_t(dims[0] * dims[1] * 3);
   if (bytes->size() != expected)
@@ -64,11 +118,11 @@ vision::Image decode_raw(const J& obj, const std::string& field) {
   return img;
 }
 
-vision::Image decode_field_image(const J& v, const std::string& field) {
+vision::Image decode_field_image(E v, const std::string& field) {
   if (v.is_object()) return decode_raw(v, field);
   if (!v.is_string())
     fail("invalid_field", field + ": expected a base64 PNG/JPEG string or {\"data\", \"shape\"}, got " + type_name(v));
-  const auto& text = v.get_ref<const std::string&>();
+  const std::string_view text = string_value(v);
   if (text.empty()) fail("invalid_field", field + ": empty image");
   std::string why;
   auto bytes = base64_decode(text, &why);
@@ -144,109 +198,151 @@ J parse_json(std::string_view body) {
   }
 }
 
-RtcFields parse_rtc(const J& rtc, const models::ModelSpec& spec) {
+RtcFields parse_rtc(E rtc, const models::ModelSpec& spec) {
   if (!rtc.is_object()) fail("invalid_field", "rtc: expected an object {prev_actions, inference_delay}, got " + type_name(rtc));
-  for (auto it = rtc.begin(); it != rtc.end(); ++it)
-    if (it.key() != "prev_actions" && it.key() != "inference_delay")
-      fail("unknown_field", "rtc: unknown field '" + it.key() + "' (accepted: prev_actions, inference_delay)");
+  const Fields fields = sorted_fields(rtc);
+  for (const auto& [key, value] : fields)
+    if (key != "prev_actions" && key != "inference_delay")
+      fail("unknown_field", "rtc: unknown field '" + std::string(key) + "' (accepted: prev_actions, inference_delay)");
   RtcFields out;
-  const auto prev = rtc.find("prev_actions");
-  if (prev == rtc.end() || !prev->is_array() || prev->empty() || int64_t(prev->size()) > spec.chunk_size)
+  std::optional<E> prev;
+  for (const auto& [key, value] : fields)
+    if (key == "prev_actions") prev = value;
+  if (!prev || !prev->is_array() || simdjson::dom::array(*prev).size() == 0 ||
+      int64_t(simdjson::dom::array(*prev).size()) > spec.chunk_size)
     fail("invalid_field", "rtc.prev_actions: expected 1 to " + std::to_string(spec.chunk_size) + " rows of " +
                               std::to_string(spec.action_dim) + " numbers (the previous chunk's actions not yet executed)");
-  out.rows = int64_t(prev->size());
+  out.rows = int64_t(simdjson::dom::array(*prev).size());
   out.prev_actions.reserve(std::size_t(out.rows * spec.action_dim));
-  for (std::size_t r = 0; r < prev->size(); ++r) {
-    const J& row = (*prev)[r];
-    const std::string where = "rtc.prev_actions[" + std::to_string(r) + "]";
-    if (!row.is_array() || int64_t(row.size()) != spec.action_dim)
+  std::size_t r = 0;
+  for (E row : simdjson::dom::array(*prev)) {
+    const std::string where = "rtc.prev_actions[" + std::to_string(r++) + "]";
+    if (!row.is_array() || int64_t(simdjson::dom::array(row).size()) != spec.action_dim)
       fail("invalid_field", where + ": expected " + std::to_string(spec.action_dim) + " numbers");
-    for (std::size_t c = 0; c < row.size(); ++c) {
-      const float v = row[c].is_number() ? float(row[c].get<double>()) : NAN;
+    std::size_t c = 0;
+    for (E value : simdjson::dom::array(row)) {
+      const float v = value.is_number() ? float(double(value.get_double())) : NAN;
       if (!std::isfinite(v)) fail("invalid_field", where + "[" + std::to_string(c) + "]: expected a finite number");
       out.prev_actions.push_back(v);
+      ++c;
     }
   }
-  const auto delay = rtc.find("inference_delay");
-  if (delay != rtc.end() && !delay->is_null()) {
-    if (!delay->is_number_integer() || delay->get<int64_t>() < 0 || delay->get<int64_t>() >= spec.chunk_size)
+  if (const auto delay = present(fields, "inference_delay")) {
+    if (!is_integer(*delay) || integer_value(*delay) < 0 || integer_value(*delay) >= spec.chunk_size)
       fail("invalid_field", "rtc.inference_delay: expected an integer in [0, " + std::to_string(spec.chunk_size) + ")");
-    out.inference_delay = int(delay->get<int64_t>());
+    out.inference_delay = int(integer_value(*delay));
   }
   return out;
 }
 
-}  // namespace
-
-ActRequest parse_act_request(std::string_view body, const models::ModelSpec& spec) {
-  const J j = parse_json(body);
-  if (!j.is_object()) fail("bad_json", "the body must be a JSON object, got " + type_name(j));
+ActRequest read_act_request(E root, const models::ModelSpec& spec) {
+  if (!root.is_object()) fail("bad_json", "the body must be a JSON object, got " + type_name(root));
+  const Fields fields = sorted_fields(root);
 
   static const char* const kKnown[] = {"instruction", "state", "images", "image", "episode_id", "seed", "rtc"};
-  for (auto it = j.begin(); it != j.end(); ++it) {
+  for (const auto& [key, value] : fields) {
     bool known = false;
-    for (const char* k : kKnown) known = known || it.key() == k;
+    for (const char* k : kKnown) known = known || key == k;
     if (!known)
-      fail("unknown_field", "unknown field '" + it.key() + "' (accepted: instruction, state, images, image, episode_id, seed, rtc)");
+      fail("unknown_field", "unknown field '" + std::string(key) +
+                                "' (accepted: instruction, state, images, image, episode_id, seed, rtc)");
   }
 
   ActRequest req;
   policy::Observation& obs = req.observation;
 
-  const auto instruction = j.find("instruction");
-  if (instruction == j.end() || instruction->is_null()) fail("missing_field", "'instruction' is required");
+  const auto instruction = present(fields, "instruction");
+  if (!instruction) fail("missing_field", "'instruction' is required");
   if (!instruction->is_string()) fail("invalid_field", "instruction: expected a string, got " + type_name(*instruction));
-  obs.instruction = instruction->get<std::string>();
+  obs.instruction = std::string(string_value(*instruction));
 
-  const auto state = j.find("state");
-  if (state == j.end() || state->is_null()) fail("missing_field", "'state' is required (" + std::to_string(spec.state_dim) + " numbers)");
+  const auto state = present(fields, "state");
+  if (!state) fail("missing_field", "'state' is required (" + std::to_string(spec.state_dim) + " numbers)");
   if (!state->is_array()) fail("invalid_field", "state: expected an array of numbers, got " + type_name(*state));
-  for (std::size_t i = 0; i < state->size(); ++i)
-    if (!(*state)[i].is_number()) fail("invalid_field", "state[" + std::to_string(i) + "]: expected a number, got " + type_name((*state)[i]));
-  if (int64_t(state->size()) != spec.state_dim)
-    fail("invalid_state", "state has " + std::to_string(state->size()) + " values, the model expects " + std::to_string(spec.state_dim));
-  obs.state.reserve(state->size());
-  for (std::size_t i = 0; i < state->size(); ++i) obs.state.push_back(float((*state)[i].get<double>()));
+  const simdjson::dom::array values = *state;
+  std::size_t i = 0;
+  for (E v : values) {
+    if (!v.is_number()) fail("invalid_field", "state[" + std::to_string(i) + "]: expected a number, got " + type_name(v));
+    ++i;
+  }
+  if (int64_t(values.size()) != spec.state_dim)
+    fail("invalid_state", "state has " + std::to_string(values.size()) + " values, the model expects " + std::to_string(spec.state_dim));
+  obs.state.reserve(values.size());
+  for (E v : values) obs.state.push_back(float(double(v.get_double())));
   check_state(obs.state, spec);
 
-  const auto images = j.find("images");
-  const auto image = j.find("image");
-  const bool has_images = images != j.end() && !images->is_null();
-  const bool has_image = image != j.end() && !image->is_null();
-  if (has_images && has_image) fail("invalid_field", "give either 'image' (the first camera) or 'images', not both");
-  if (!has_images && !has_image) fail("missing_field", "an image is required: 'images' {camera: image} or 'image'");
-  if (has_image) {
+  const auto images = present(fields, "images");
+  const auto image = present(fields, "image");
+  if (images && image) fail("invalid_field", "give either 'image' (the first camera) or 'images', not both");
+  if (!images && !image) fail("missing_field", "an image is required: 'images' {camera: image} or 'image'");
+  if (image) {
     if (spec.cameras.empty()) fail("unknown_camera", "the model has no camera inputs");
     obs.images[spec.cameras.front()] = decode_field_image(*image, "image");
   } else {
     if (!images->is_object()) fail("invalid_field", "images: expected an object {camera: image}, got " + type_name(*images));
-    if (images->empty()) fail("missing_field", "images: at least one camera image is required");
-    for (auto it = images->begin(); it != images->end(); ++it) {
-      const auto camera = resolve_camera(it.key(), spec);
+    const Fields cameras = sorted_fields(*images);
+    if (cameras.empty()) fail("missing_field", "images: at least one camera image is required");
+    for (const auto& [key, value] : cameras) {
+      const std::string name(key);
+      const auto camera = resolve_camera(name, spec);
       if (!camera) {
         std::string known;
         for (const auto& c : spec.cameras) known += (known.empty() ? "" : ", ") + c;
-        fail("unknown_camera", "images: the model has no camera '" + it.key() + "' (it has: " + known + ")");
+        fail("unknown_camera", "images: the model has no camera '" + name + "' (it has: " + known + ")");
       }
       if (obs.images.count(*camera)) fail("invalid_field", "images: camera '" + *camera + "' is given twice");
-      obs.images[*camera] = decode_field_image(it.value(), "images." + it.key());
+      obs.images[*camera] = decode_field_image(value, "images." + name);
     }
   }
 
-  const auto episode = j.find("episode_id");
-  if (episode != j.end() && !episode->is_null()) {
+  if (const auto episode = present(fields, "episode_id")) {
     if (!episode->is_string()) fail("invalid_field", "episode_id: expected a string, got " + type_name(*episode));
-    req.episode_id = episode->get<std::string>();
+    req.episode_id = std::string(string_value(*episode));
   }
-  const auto rtc = j.find("rtc");
-  if (rtc != j.end() && !rtc->is_null()) req.rtc = parse_rtc(*rtc, spec);
-  const auto seed = j.find("seed");
-  if (seed != j.end() && !seed->is_null()) {
-    if (!seed->is_number_integer() || (seed->is_number_integer() && !seed->is_number_unsigned() && seed->get<int64_t>() < 0))
+  if (const auto rtc = present(fields, "rtc")) req.rtc = parse_rtc(*rtc, spec);
+  if (const auto seed = present(fields, "seed")) {
+    if (!is_integer(*seed) || (seed->is_int64() && int64_t(seed->get_int64()) < 0))
       fail("invalid_field", "seed: expected an integer >= 0");
-    req.seed = seed->get<uint64_t>();
+    req.seed = seed->is_int64() ? uint64_t(int64_t(seed->get_int64())) : uint64_t(seed->get_uint64());
   }
   return req;
+}
+
+// One parser per I/O thread, reused: its buffers grow to the largest body seen, so a huge one is let go afterwards.
+constexpr std::size_t kKeptParserCapacity = std::size_t(4) << 20;
+
+// Deeper than nlohmann's limit is left to nlohmann, which refuses it with its message.
+constexpr std::size_t kSimdjsonMaxDepth = kMaxJsonDepth + 2;
+
+}  // namespace
+
+ActRequest parse_act_request(std::string_view body, const models::ModelSpec& spec) {
+  thread_local std::unique_ptr<simdjson::dom::parser> parser;
+  if (!parser) {
+    parser = std::make_unique<simdjson::dom::parser>();
+    if (parser->allocate(simdjson::dom::MINIMAL_DOCUMENT_CAPACITY, kSimdjsonMaxDepth) != simdjson::SUCCESS)
+      throw std::bad_alloc();
+  }
+  struct Release {
+    std::unique_ptr<simdjson::dom::parser>& p;
+    ~Release() {
+      if (p && p->capacity() > kKeptParserCapacity) p.reset();
+    }
+  } release{parser};
+  E root;
+  if (parser->parse(body.data(), body.size()).get(root) == simdjson::SUCCESS) {
+    try {
+      return read_act_request(root, spec);
+    } catch (const ReadWithNlohmann&) {
+    }
+  }
+  // Refused by simdjson (malformed, a number beyond double range, too deep) or a repeated key: nlohmann's reading is
+  // the contract (its error, or the document as it understands it, written back without repeats).
+  const std::string normalised = parse_json(body).dump();
+  const auto again = parser->parse(normalised);
+  if (again.error() != simdjson::SUCCESS)
+    fail("bad_json", std::string("the body is not valid JSON: ") + simdjson::error_message(again.error()));
+  return read_act_request(again.value_unsafe(), spec);
 }
 
 void check_observation(const policy::Observation& obs, const models::ModelSpec& spec) {

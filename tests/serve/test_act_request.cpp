@@ -237,3 +237,35 @@ TEST(ActRequest, ResolvesCameraNames) {
   EXPECT_FALSE(resolve_camera("images.front", cams).has_value());
   EXPECT_FALSE(resolve_camera("", cams).has_value());
 }
+
+// Bodies simdjson refuses or reads differently from nlohmann are decided by nlohmann's reading, as before simdjson.
+TEST(ActRequest, SimdjsonAndNlohmannAgreeOnTheEdges) {
+  const std::string img = R"("image": {"data": "AAAA", "shape": [1, 1, 3]})";
+  // A repeated key: the last value counts (nlohmann's reading), not the first.
+  const ActRequest r = parse_act_request(
+      R"({"instruction": "first", "state": [1, 2, 3], "instruction": "last", "seed": 4, )" + img + "}", spec());
+  EXPECT_EQ(r.observation.instruction, "last");
+  EXPECT_EQ(r.seed, 4u);
+  // A UTF-8 byte order mark is skipped by nlohmann; a number beyond uint64 is a float there (not a valid seed).
+  EXPECT_EQ(parse_act_request("\xEF\xBB\xBF{\"instruction\": \"x\", \"state\": [1, 2, 3], " + img + "}", spec())
+                .observation.instruction, "x");
+  expect_error(R"({"instruction": "x", "state": [1, 2, 3], "seed": 18446744073709551616, )" + img + "}", "invalid_field",
+               "seed");
+  // Nesting: within nlohmann's limit a wrong type, past it bad_json.
+  auto nested = [](int levels) { return std::string(std::size_t(levels), '[') + std::string(std::size_t(levels), ']'); };
+  expect_error(R"({"instruction": "x", "state": )" + nested(kMaxJsonDepth - 2) + "}", "invalid_field", "state[0]");
+  expect_error(R"({"instruction": "x", "state": )" + nested(kMaxJsonDepth + 4) + "}", "bad_json", "nested deeper");
+  // Lone surrogates and invalid UTF-8 in a string are not JSON text.
+  expect_error(R"({"instruction": "\udc00", "state": [1, 2, 3], )" + img + "}", "bad_json");
+  expect_error(R"({"instruction": "\ud800", "state": [1, 2, 3], )" + img + "}", "bad_json");
+  expect_error("{\"instruction\": \"\xC3\x28\", \"state\": [1, 2, 3], " + img + "}", "bad_json");
+  // Trailing bytes after the object, and a mistake after a wrong field: the syntax error is reported.
+  expect_error(R"({"instruction": "x", "state": [1, 2, 3], )" + img + "} x", "bad_json");
+  expect_error(std::string(R"({"state": "wrong", "instruction": "x", )"), "bad_json");
+  // Of two faults the first in key order is named, whatever the body's order.
+  expect_error(R"({"zzz": 1, "instruction": "x", "aaa": 2, "state": [1, 2, 3], )" + img + "}", "unknown_field", "'aaa'");
+  // JSON escapes in a base64 string are undone before decoding ("\/" is "/").
+  const ActRequest escaped = parse_act_request(
+      R"({"instruction": "x", "state": [1, 2, 3], "image": {"data": "\/\/\/\/", "shape": [1, 1, 3]}})", spec());
+  EXPECT_EQ(escaped.observation.images.begin()->second.rgb, (std::vector<uint8_t>{0xFF, 0xFF, 0xFF}));
+}
