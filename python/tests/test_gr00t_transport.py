@@ -206,14 +206,18 @@ def test_guard_and_traces_and_metrics(tmp_path):
         assert np.all(a[:, :5] >= -100) and np.all(a[:, :5] <= 100) and np.all(a[:, 5] >= 0) and np.all(a[:, 5] <= 100)
         assert "guard_clamped" in info["tether"][0]
         assert c.get_action(nested_obs(state_dim=3))["code"] == "invalid_state"
+        c.socket.send(b"\xc1\xff")  # not msgpack: refused while decoding, counted and traced too
+        garbage = unpack(c.socket.recv())
+        assert garbage["code"] == "bad_msgpack" and garbage["status"] == 400
         m = metrics_of(proc)
         assert metric(m, "tether_requests_total", transport="gr00t", endpoint="/act", status="200") == 1
-        assert metric(m, "tether_requests_total", transport="gr00t", status="400") == 1
+        assert metric(m, "tether_requests_total", transport="gr00t", status="400") == 2
     lines = trace_lines(record)
-    assert len(lines) == 2
+    assert len(lines) == 3
     assert all(line["transport"] == "gr00t" for line in lines)
     assert lines[0]["episode_id"] == "g1" and lines[0]["status"] == "success"
     assert lines[1]["status"] == "failed"
+    assert lines[2]["status"] == "failed" and lines[2]["error"]["code"] == "bad_msgpack"
 
 
 def test_deadline_answers_from_the_last_good_chunk():

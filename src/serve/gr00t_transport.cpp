@@ -91,8 +91,18 @@ class Gr00tTransport final : public Transport {
   void handle(std::string payload, std::chrono::steady_clock::time_point received, ZmqReply reply) {
     auto g = std::make_shared<GetAction>(std::move(reply));
     g->payload = std::move(payload);
+    g->host = &ctx_.host;
     try {
       g->call = gr00t::parse_call(g->payload);
+    } catch (...) {
+      // Not even a call (not msgpack, not a map, no known endpoint): the pipeline refuses it at its decoding step, so
+      // it is counted and traced under gr00t like any refused request (after the key check: a message whose token
+      // cannot be read is answered 401 when the server has a key).
+      const std::size_t wire_bytes = g->payload.size();
+      g->inputs.push_back(refused_input(wire_bytes, std::current_exception()));
+      return run(std::move(g), received);
+    }
+    try {
       if (g->call.endpoint != gr00t::Endpoint::get_action) return g->reply(other_endpoint(g->call));
     } catch (const HttpError& e) {
       return g->reply(gr00t::error_reply(e.status(), e.code(), e.what()));
@@ -104,25 +114,30 @@ class Gr00tTransport final : public Transport {
     if (batch > kMaxItems)
       return g->reply(gr00t::error_reply(400, "invalid_field", "observation: a batch of " + std::to_string(batch) +
                                                                    " items; at most " + std::to_string(kMaxItems)));
-    g->host = &ctx_.host;
     g->inputs.resize(std::size_t(batch));
-    g->contexts.resize(std::size_t(batch));
-    g->responses.resize(std::size_t(batch));
-    g->remaining = batch;
     GetAction* raw = g.get();
     for (int64_t i = 0; i < batch; ++i) {
       auto& input = g->inputs[std::size_t(i)];
       input.wire_bytes = g->payload.size();
       input.decode = [raw, i](const models::ModelSpec& spec) { return gr00t::decode_item(raw->call, i, spec); };
       input.act_json = [](const ActRequest& r) { return act_request_json(r); };
-      auto& c = g->contexts[std::size_t(i)];
+    }
+    run(std::move(g), received);
+  }
+
+  // Runs g's inputs through the pipeline at once (so they batch); the reply goes when the last one has answered.
+  void run(std::shared_ptr<GetAction> g, std::chrono::steady_clock::time_point received) {
+    const std::size_t n = g->inputs.size();
+    g->contexts.resize(n);
+    g->responses.resize(n);
+    g->remaining = int64_t(n);
+    for (auto& c : g->contexts) {
       c.request_id = generate_request_id();
       c.api_key = g->call.api_token;
       c.received = received;
       c.transport = "gr00t";
     }
-    for (int64_t i = 0; i < batch; ++i)
-      net::co_spawn(ctx_.ioc, run_item(g, &ctx_.pipeline, std::size_t(i)), net::detached);
+    for (std::size_t i = 0; i < n; ++i) net::co_spawn(ctx_.ioc, run_item(g, &ctx_.pipeline, i), net::detached);
   }
 
   std::string other_endpoint(const gr00t::Call& call) {
