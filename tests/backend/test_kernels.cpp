@@ -14,6 +14,7 @@
 
 #include "backend/cpu/gemm.h"
 #include "backend/cpu/kernels.h"
+#include "backend/cpu/vec_math.h"
 #include "core/error.h"
 
 namespace tether::cpu {
@@ -477,6 +478,56 @@ TEST(Activations, SiluAndSiluMul) {
   silu_mul(alias.data(), up.data(), int64_t(alias.size()), alias.data());
   EXPECT_EQ(0, std::memcmp(alias.data(), out.data(), out.size() * sizeof(float)));
 }
+
+#if defined(__x86_64__)
+// The activations run a variant compiled for the dispatched ISA (AVX-512, AVX2 under TETHER_MAX_CPU_ISA=AVX2, which
+// the suite's second pass sets). Each must match, bit for bit, the same float32 steps done one element at a time in
+// this baseline (no FMA, so nothing contracted) translation unit.
+TEST(Activations, DispatchedVariantMatchesScalarStepsBitForBit) {
+  auto x = activation_inputs();
+  const auto big = random_vec(1 << 17, 63, -8.0f, 8.0f);
+  x.insert(x.end(), big.begin(), big.end());
+  const auto up = random_vec(x.size(), 64, -3.0f, 3.0f);
+  const std::size_t n = x.size();
+  auto gelu_one = [](float v) {
+    const float inner = float(0.79788456080286535588) * (v + 0.044715f * (v * v * v));
+    return 0.5f * v * (1.0f + tether::cpu::detail::tanh_f32(inner));
+  };
+  auto silu_one = [](float v) { return v / (1.0f + tether::cpu::detail::exp_f32(-v)); };
+  std::vector<float> want_gelu(n), want_gelu_mul(n), want_silu(n), want_silu_mul(n);
+  for (std::size_t i = 0; i < n; ++i) {
+    want_gelu[i] = gelu_one(x[i]);
+    want_gelu_mul[i] = want_gelu[i] * up[i];
+    want_silu[i] = silu_one(x[i]);
+    want_silu_mul[i] = want_silu[i] * up[i];
+  }
+  auto same = [n](const std::vector<float>& a, const std::vector<float>& b) {
+    return std::memcmp(a.data(), b.data(), n * sizeof(float)) == 0;
+  };
+  auto g = x, s = x;
+  gelu_tanh(g.data(), int64_t(n));
+  silu(s.data(), int64_t(n));
+  std::vector<float> gm(n), sm(n);
+  gelu_tanh_mul(x.data(), up.data(), int64_t(n), gm.data());
+  silu_mul(x.data(), up.data(), int64_t(n), sm.data());
+  EXPECT_TRUE(same(g, want_gelu));
+  EXPECT_TRUE(same(gm, want_gelu_mul));
+  EXPECT_TRUE(same(s, want_silu));
+  EXPECT_TRUE(same(sm, want_silu_mul));
+
+  // softmax_row's exponentials (the max and the lane sum are the same on every ISA by construction).
+  auto row = random_vec(1000, 65, -20.0f, 20.0f);
+  float mx = row[0];
+  for (float v : row) mx = std::max(mx, v);
+  std::vector<float> e(row.size());
+  for (std::size_t i = 0; i < row.size(); ++i) e[i] = tether::cpu::detail::exp_f32(row[i] - mx);
+  float lanes[8] = {};
+  for (std::size_t i = 0; i < e.size(); ++i) lanes[i % 8] += e[i];
+  const float inv = 1.0f / (((lanes[0] + lanes[1]) + (lanes[2] + lanes[3])) + ((lanes[4] + lanes[5]) + (lanes[6] + lanes[7])));
+  softmax_row(row.data(), int64_t(row.size()), nullptr);
+  for (std::size_t i = 0; i < row.size(); ++i) ASSERT_EQ(row[i], e[i] * inv) << i;
+}
+#endif
 
 TEST(Activations, SpecialValues) {
   std::vector<float> x = {0.0f, -100.0f, 100.0f, std::numeric_limits<float>::quiet_NaN()};

@@ -113,18 +113,12 @@ class CpuBackend final : public Backend {
   void gated(Ptr<const float> gate_up, int64_t rows, int64_t n, Activation act, Ptr<float> out) override {
     const float* gu = gate_up.address();
     float* o = out.address();
-    if (act == Activation::silu) {
-      for (int64_t r = 0; r < rows; ++r) cpu::silu_mul(gu + r * 2 * n, gu + r * 2 * n + n, n, o + r * n);
-      return;
-    }
-    // act(gate) is a tensor of its own upstream, rounded before the product.
-    for (int64_t r = 0; r < rows; ++r) std::memcpy(o + r * n, gu + r * 2 * n, std::size_t(n) * sizeof(float));
-    cpu::gelu_tanh(o, rows * n);
+    // Rows in parallel (each row's kernel then runs on its thread alone); one row splits its own elements.
+#pragma omp parallel for schedule(static) if (rows > 1 && rows * n >= (1 << 15))
     for (int64_t r = 0; r < rows; ++r) {
-      const float* up = gu + r * 2 * n + n;
-      float* orow = o + r * n;
-#pragma omp simd
-      for (int64_t i = 0; i < n; ++i) orow[i] = orow[i] * up[i];
+      const float *gate = gu + r * 2 * n, *up = gate + n;
+      if (act == Activation::silu) cpu::silu_mul(gate, up, n, o + r * n);
+      else cpu::gelu_tanh_mul(gate, up, n, o + r * n);
     }
   }
   void add(Ptr<const float> a, Ptr<const float> b, int64_t n, Ptr<float> out) override {

@@ -21,6 +21,75 @@ namespace {
 // Below this many elements an OpenMP fork costs more than it saves.
 constexpr int64_t kParallelMin = 1 << 15;
 
+// The activations built on the polynomial exp and tanh of vec_math.h are compiled once per ISA the dispatch knows and
+// chosen under the TETHER_MAX_CPU_ISA cap, as the panel GEMM is: the rest of the build targets baseline x86-64, whose
+// 4-lane SSE ran GeGLU's tanh at a third of AVX-512's speed. Each `<name>_span` is written once and inlined into each
+// variant; every lane computes the same float32 steps (no contraction, see CMakeLists), so all variants give
+// bit-identical results.
+#if defined(__x86_64__)
+#define TETHER_TARGET_AVX2 __attribute__((target("avx2,fma")))
+#define TETHER_TARGET_AVX512 __attribute__((target("avx512f,avx512dq,avx512bw,avx512vl,prefer-vector-width=512")))
+#define TETHER_ISA_VARIANTS(name, params, args)                 \
+  void name##_portable params { name##_span args; }            \
+  TETHER_TARGET_AVX2 void name##_avx2 params { name##_span args; } \
+  TETHER_TARGET_AVX512 void name##_avx512 params { name##_span args; } \
+  void name##_best params {                                     \
+    static const CpuIsa isa = cpu_paths().effective;            \
+    if (isa >= CpuIsa::avx512) return name##_avx512 args;       \
+    if (isa >= CpuIsa::avx2) return name##_avx2 args;           \
+    name##_portable args;                                       \
+  }
+#else
+#define TETHER_ISA_VARIANTS(name, params, args) \
+  void name##_best params { name##_span args; }
+#endif
+
+// sqrt(2/pi) and the cubic coefficient of GELU's tanh approximation, as float32 constants.
+constexpr float kGeluBeta = float(0.79788456080286535588);
+constexpr float kGeluKappa = 0.044715f;
+
+// The same float32 steps as PyTorch's formula; only tanh itself may differ by an ulp.
+[[gnu::always_inline]] inline float gelu_tanh_one(float v) {
+  const float cube = v * v * v;
+  const float inner = kGeluBeta * (v + kGeluKappa * cube);
+  return 0.5f * v * (1.0f + detail::tanh_f32(inner));
+}
+
+[[gnu::always_inline]] inline void gelu_tanh_span(float* x, int64_t begin, int64_t end) {
+#pragma omp simd
+  for (int64_t i = begin; i < end; ++i) x[i] = gelu_tanh_one(x[i]);
+}
+// gelu(gate) is rounded to float32 before the product, as upstream's separate tensors are.
+[[gnu::always_inline]] inline void gelu_tanh_mul_span(const float* gate, const float* up, float* out, int64_t begin,
+                                                      int64_t end) {
+#pragma omp simd
+  for (int64_t i = begin; i < end; ++i) out[i] = gelu_tanh_one(gate[i]) * up[i];
+}
+[[gnu::always_inline]] inline void silu_span(float* x, int64_t begin, int64_t end) {
+#pragma omp simd
+  for (int64_t i = begin; i < end; ++i) x[i] = x[i] / (1.0f + detail::exp_f32(-x[i]));
+}
+[[gnu::always_inline]] inline void silu_mul_span(const float* gate, const float* up, float* out, int64_t begin,
+                                                 int64_t end) {
+#pragma omp simd
+  for (int64_t i = begin; i < end; ++i) {
+    const float g = gate[i];
+    out[i] = (g / (1.0f + detail::exp_f32(-g))) * up[i];
+  }
+}
+[[gnu::always_inline]] inline void exp_minus_span(float* x, float shift, int64_t n) {
+#pragma omp simd
+  for (int64_t i = 0; i < n; ++i) x[i] = detail::exp_f32(x[i] - shift);
+}
+
+TETHER_ISA_VARIANTS(gelu_tanh, (float* x, int64_t begin, int64_t end), (x, begin, end))
+TETHER_ISA_VARIANTS(gelu_tanh_mul, (const float* gate, const float* up, float* out, int64_t begin, int64_t end),
+                    (gate, up, out, begin, end))
+TETHER_ISA_VARIANTS(silu, (float* x, int64_t begin, int64_t end), (x, begin, end))
+TETHER_ISA_VARIANTS(silu_mul, (const float* gate, const float* up, float* out, int64_t begin, int64_t end),
+                    (gate, up, out, begin, end))
+TETHER_ISA_VARIANTS(exp_minus, (float* x, float shift, int64_t n), (x, shift, n))
+
 // Runs body(begin, end) over [0, n) split into one contiguous, 16-aligned chunk per thread. The simd
 // loops stay in plain functions: GCC does not vectorise them inside `parallel for simd` outlining.
 template <typename Body>
@@ -178,8 +247,7 @@ void softmax_row(float* x, int64_t n, const uint8_t* keep) {
   float mx = x[0];
 #pragma omp simd reduction(max : mx)
   for (int64_t i = 0; i < n; ++i) mx = x[i] > mx ? x[i] : mx;
-#pragma omp simd
-  for (int64_t i = 0; i < n; ++i) x[i] = detail::exp_f32(x[i] - mx);
+  exp_minus_best(x, mx, n);
   // Lanes follow each kept entry's rank among the kept ones, not its position: masked padding anywhere in the row
   // (masked entries are exact zeros here) leaves every lane's sum, and so the result, unchanged.
   float sum;
@@ -199,36 +267,19 @@ void softmax_row(float* x, int64_t n, const uint8_t* keep) {
 }
 
 void gelu_tanh(float* x, int64_t n) {
-  for_chunks(n, [x](int64_t begin, int64_t end) {
-    // sqrt(2/pi) and the cubic coefficient of the tanh approximation, as float32 constants.
-    constexpr float kBeta = float(0.79788456080286535588);
-    constexpr float kKappa = 0.044715f;
-#pragma omp simd
-    for (int64_t i = begin; i < end; ++i) {
-      const float v = x[i];
-      const float cube = v * v * v;
-      const float inner = kBeta * (v + kKappa * cube);
-      // The same float32 steps as PyTorch's formula; only tanh itself may differ by an ulp.
-      x[i] = 0.5f * v * (1.0f + detail::tanh_f32(inner));
-    }
-  });
+  for_chunks(n, [x](int64_t begin, int64_t end) { gelu_tanh_best(x, begin, end); });
+}
+
+void gelu_tanh_mul(const float* gate, const float* up, int64_t n, float* out) {
+  for_chunks(n, [=](int64_t begin, int64_t end) { gelu_tanh_mul_best(gate, up, out, begin, end); });
 }
 
 void silu(float* x, int64_t n) {
-  for_chunks(n, [x](int64_t begin, int64_t end) {
-#pragma omp simd
-    for (int64_t i = begin; i < end; ++i) x[i] = x[i] / (1.0f + detail::exp_f32(-x[i]));
-  });
+  for_chunks(n, [x](int64_t begin, int64_t end) { silu_best(x, begin, end); });
 }
 
 void silu_mul(const float* gate, const float* up, int64_t n, float* out) {
-  for_chunks(n, [=](int64_t begin, int64_t end) {
-#pragma omp simd
-    for (int64_t i = begin; i < end; ++i) {
-      const float g = gate[i];
-      out[i] = (g / (1.0f + detail::exp_f32(-g))) * up[i];
-    }
-  });
+  for_chunks(n, [=](int64_t begin, int64_t end) { silu_mul_best(gate, up, out, begin, end); });
 }
 
 void add(const float* a, const float* b, int64_t n, float* out) {

@@ -47,6 +47,8 @@ void gelu_tanh(float* x, int64_t n);
 void silu(float* x, int64_t n);
 // out[i] = silu(gate[i]) * up[i]; out may alias gate.
 void silu_mul(const float* gate, const float* up, int64_t n, float* out);
+// out = gelu_tanh(gate) * up, with gelu's result rounded to float32 before the product (as upstream's separate tensors).
+void gelu_tanh_mul(const float* gate, const float* up, int64_t n, float* out);
 
 void add(const float* a, const float* b, int64_t n, float* out);  // out may alias a or b
 void scale(float* x, int64_t n, float s);
