@@ -480,9 +480,9 @@ TEST(Activations, SiluAndSiluMul) {
 }
 
 #if defined(__x86_64__)
-// The activations run a variant compiled for the dispatched ISA (AVX-512, AVX2 under TETHER_MAX_CPU_ISA=AVX2, which
-// the suite's second pass sets). Each must match, bit for bit, the same float32 steps done one element at a time in
-// this baseline (no FMA, so nothing contracted) translation unit.
+// The activations run a variant compiled for the dispatched ISA (AVX-512, or the AVX2 baseline under
+// TETHER_MAX_CPU_ISA=AVX2, which the suite's second pass sets). Each must match, bit for bit, the same float32 steps
+// done one element at a time here (built with -ffp-contract=off like the kernels, so nothing is fused).
 TEST(Activations, DispatchedVariantMatchesScalarStepsBitForBit) {
   auto x = activation_inputs();
   const auto big = random_vec(1 << 17, 63, -8.0f, 8.0f);

@@ -1,3 +1,4 @@
+// Huge-page backed storage for packed weights (see huge_pages.h).
 #include "backend/cpu/huge_pages.h"
 
 #include <sys/mman.h>

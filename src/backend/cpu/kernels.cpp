@@ -21,23 +21,24 @@ namespace {
 // Below this many elements an OpenMP fork costs more than it saves.
 constexpr int64_t kParallelMin = 1 << 15;
 
-// The activations built on the polynomial exp and tanh of vec_math.h are compiled once per ISA the dispatch knows and
-// chosen under the TETHER_MAX_CPU_ISA cap, as the panel GEMM is: the rest of the build targets baseline x86-64, whose
-// 4-lane SSE ran GeGLU's tanh at a third of AVX-512's speed. Each `<name>_span` is written once and inlined into each
-// variant; every lane computes the same float32 steps (no contraction, see CMakeLists), so all variants give
+// The activations built on the polynomial exp and tanh of vec_math.h are compiled twice, for the build's baseline
+// (x86-64-v3: AVX2, 8 lanes) and for AVX-512 (16 lanes), and chosen under the TETHER_MAX_CPU_ISA cap as the panel
+// GEMM is: GeGLU's tanh ran at half its AVX-512 speed. Each `<name>_span` is written once and inlined into each
+// variant; every lane computes the same float32 steps (no contraction, see CMakeLists), so the variants give
 // bit-identical results.
 #if defined(__x86_64__)
-#define TETHER_TARGET_AVX2 __attribute__((target("avx2,fma")))
-#define TETHER_TARGET_AVX512 __attribute__((target("avx512f,avx512dq,avx512bw,avx512vl,prefer-vector-width=512")))
-#define TETHER_ISA_VARIANTS(name, params, args)                 \
-  void name##_portable params { name##_span args; }            \
-  TETHER_TARGET_AVX2 void name##_avx2 params { name##_span args; } \
-  TETHER_TARGET_AVX512 void name##_avx512 params { name##_span args; } \
-  void name##_best params {                                     \
-    static const CpuIsa isa = cpu_paths().effective;            \
-    if (isa >= CpuIsa::avx512) return name##_avx512 args;       \
-    if (isa >= CpuIsa::avx2) return name##_avx2 args;           \
-    name##_portable args;                                       \
+#if defined(__clang__)  // clang takes no vector-width preference in the attribute
+#define TETHER_AVX512_TARGET "avx512f,avx512dq,avx512bw,avx512vl"
+#else  // GCC would otherwise keep 256-bit vectors
+#define TETHER_AVX512_TARGET "avx512f,avx512dq,avx512bw,avx512vl,prefer-vector-width=512"
+#endif
+#define TETHER_ISA_VARIANTS(name, params, args)                                              \
+  void name##_baseline params { name##_span args; }                                           \
+  __attribute__((target(TETHER_AVX512_TARGET))) void name##_avx512 params { name##_span args; } \
+  void name##_best params {                                                                                        \
+    static const bool avx512 = cpu_paths().effective >= CpuIsa::avx512;                                            \
+    if (avx512) return name##_avx512 args;                                                                         \
+    name##_baseline args;                                                                                          \
   }
 #else
 #define TETHER_ISA_VARIANTS(name, params, args) \
