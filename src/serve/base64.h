@@ -1,5 +1,5 @@
-// Base64 (RFC 4648 standard alphabet) for image payloads in requests, over OpenSSL's block codec. The checks
-// around it keep Tether's stricter contract, and its errors say what is wrong and where.
+// Base64 (RFC 4648 standard alphabet) for image payloads in requests: a strict decoder (its errors say what is wrong
+// and where) and OpenSSL's block encoder.
 #pragma once
 
 #include <cstdint>
