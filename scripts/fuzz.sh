@@ -36,6 +36,7 @@ seeds_for() {
       echo "$dir" ;;
     fuzz_image_decode) echo "tests/fixtures/vision/images tests/fixtures/vision/bad" ;;
     fuzz_act_request) echo "fuzz/seeds/act_request" ;;
+    fuzz_act_msgpack_request) echo "fuzz/seeds/act_msgpack_request" ;;
     fuzz_kserve_request) echo "fuzz/seeds/kserve_request" ;;
     fuzz_openpi_request) echo "fuzz/seeds/openpi_request" ;;
     fuzz_gr00t_request) echo "fuzz/seeds/gr00t_request" ;;
