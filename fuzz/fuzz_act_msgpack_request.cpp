@@ -9,16 +9,7 @@
 
 extern "C" int LLVMFuzzerTestOneInput(const uint8_t* data, size_t size) {
   using namespace tether;
-  try {
-    const serve::ActRequest req =
-        serve::zmqp::decode_http_body(std::string_view(reinterpret_cast<const char*>(data), size), fuzz::fake_spec());
-    fuzz::check_accepted(req);
-    if (req.rtc && (req.rtc->rows < 1 ||
-                    int64_t(req.rtc->prev_actions.size()) != req.rtc->rows * fuzz::fake_spec().action_dim))
-      __builtin_trap();
-  } catch (const serve::HttpError& e) {
-    fuzz::check_refusal(e, {"bad_msgpack", "invalid_field", "invalid_state", "invalid_image", "unknown_camera",
-                            "unknown_field", "missing_field"});
-  }
+  const std::string_view bytes(reinterpret_cast<const char*>(data), size);
+  fuzz::check_msgpack_act([&] { return serve::zmqp::decode_http_body(bytes, fuzz::fake_spec()); });
   return 0;
 }

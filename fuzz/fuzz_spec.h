@@ -51,4 +51,19 @@ inline void check_refusal(const serve::HttpError& e, std::initializer_list<const
   __builtin_trap();
 }
 
+// The contract of both msgpack /act decoders (a Tether ZMQ message, a POST /act msgpack body): `decode()` yields a
+// well-formed request (a real-time chunking prefix of whole action rows) or a 400 with one of /act's codes.
+template <class Decode>
+void check_msgpack_act(Decode&& decode) {
+  try {
+    const serve::ActRequest req = decode();
+    check_accepted(req);
+    if (req.rtc && (req.rtc->rows < 1 || int64_t(req.rtc->prev_actions.size()) != req.rtc->rows * fake_spec().action_dim))
+      __builtin_trap();
+  } catch (const serve::HttpError& e) {
+    check_refusal(e, {"bad_msgpack", "invalid_field", "invalid_state", "invalid_image", "unknown_camera",
+                      "unknown_field", "missing_field"});
+  }
+}
+
 }  // namespace tether::fuzz
