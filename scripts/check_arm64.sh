@@ -88,8 +88,13 @@ if [ "$(cat "$stamp" 2>/dev/null)" != "$want" ]; then
     read -r dev lib name <<<"$entry"
     version=$(package_version "$dev" "$lib")
     echo "check_arm64: unpacking $dev:arm64 $version into $sysroot"
-    (cd "$sysroot/debs" && apt-get download -q "$dev:arm64=$version" 2>&1 | grep -v '^W: Download is performed unsandboxed') ||
-      true
+    # An amd64 binNMU (version suffix +bN, a rebuild of the same source) may have no arm64 twin: take the plain
+    # source version there.
+    for v in "$version" "${version%+b[0-9]*}"; do
+      (cd "$sysroot/debs" && apt-get download -q "$dev:arm64=$v" 2>&1 | grep -v '^W: Download is performed unsandboxed') ||
+        true
+      ls "$sysroot"/debs/"$dev"_*_arm64.deb >/dev/null 2>&1 && break
+    done
     deb=$(ls "$sysroot"/debs/"$dev"_*_arm64.deb 2>/dev/null | head -1)
     [ -n "$deb" ] || fail "apt-get download $dev:arm64=$version failed"
     dpkg-deb -x "$deb" "$sysroot" || fail "dpkg-deb -x $deb failed"
