@@ -167,13 +167,7 @@ void write_modality(msgpack::Writer& w, const std::vector<int64_t>& delta, const
 }  // namespace
 
 Call parse_call(std::string_view message) {
-  msgpack::Value root;
-  try {
-    root = msgpack::parse(message);
-  } catch (const msgpack::Error& e) {
-    fail("bad_msgpack", std::string("the message is not valid msgpack: ") + e.what());
-  }
-  if (!root.is_map()) fail("bad_msgpack", "the message must be a msgpack map {endpoint, data, api_token}, got " + kind_of(root));
+  msgpack::Value root = msgpack::parse_map(message, "message", "{endpoint, data, api_token}");
   Call call;
   std::string endpoint = "get_action";
   for (auto& [k, v] : root.entries) {

@@ -1,5 +1,7 @@
-// JSON to MessagePack.
+// JSON to MessagePack, and parsing a msgpack request map.
 #include "serve/msgpack_json.h"
+
+#include "serve/http_error.h"
 
 namespace tether::serve::msgpack {
 
@@ -25,6 +27,19 @@ void write_json(Writer& w, const Json& j) {
     case Json::value_t::binary: w.bin(std::string_view(reinterpret_cast<const char*>(j.get_binary().data()), j.get_binary().size())); break;
     case Json::value_t::discarded: w.nil(); break;
   }
+}
+
+Value parse_map(std::string_view bytes, const char* what, const char* expected) {
+  Value root;
+  try {
+    root = parse(bytes);
+  } catch (const Error& e) {
+    throw HttpError(400, "bad_msgpack", std::string("the ") + what + " is not valid msgpack: " + e.what());
+  }
+  if (!root.is_map())
+    throw HttpError(400, "bad_msgpack",
+                    std::string("the ") + what + " must be a msgpack map " + expected + ", got " + kind_name(root.kind));
+  return root;
 }
 
 }  // namespace tether::serve::msgpack

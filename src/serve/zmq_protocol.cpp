@@ -121,12 +121,7 @@ void write_body(msgpack::Writer& w, const Json& body) {
 
 Request parse_request(std::string_view message) {
   Request req;
-  try {
-    req.root = msgpack::parse(message);
-  } catch (const msgpack::Error& e) {
-    fail("bad_msgpack", std::string("the message is not valid msgpack: ") + e.what());
-  }
-  if (!req.root.is_map()) fail("bad_msgpack", "the message must be a msgpack map with /act's fields, got " + kind_of(req.root));
+  req.root = msgpack::parse_map(message, "message", "with /act's fields");
   if (const msgpack::Value* id = field(req.root, "id")) {
     if (id->is_str() && id->bytes.size() <= 128) req.id = std::string(id->bytes);
     else if (id->kind == msgpack::Kind::integer && !id->above_int64) req.id = id->integer;
@@ -221,14 +216,7 @@ ActRequest decode_message(std::string_view message, const models::ModelSpec& spe
 }
 
 ActRequest decode_http_body(std::string_view body, const models::ModelSpec& spec) {
-  msgpack::Value root;
-  try {
-    root = msgpack::parse(body);
-  } catch (const msgpack::Error& e) {
-    fail("bad_msgpack", std::string("the body is not valid msgpack: ") + e.what());
-  }
-  if (!root.is_map()) fail("bad_msgpack", "the body must be a msgpack map with /act's fields, got " + kind_of(root));
-  return decode_fields(root, spec, false);
+  return decode_fields(msgpack::parse_map(body, "body", "with /act's fields"), spec, false);
 }
 
 std::string encode_body(const Json& body) {
