@@ -10,6 +10,7 @@
 
 #include <atomic>
 #include <cstring>
+#include <vector>
 
 #include "backend/cpu/panel_gemm.h"
 
@@ -26,22 +27,48 @@ struct PanelGemm {
   using reg = typename V::reg;
   static constexpr int NR = 2 * V::width;  // two vector registers of columns
   static constexpr int MR = V::rows;
-  // A panel block of KC x NR weights stays in L1 (32 KB at NR = 32 in either dtype); half-size weights take twice
-  // the k steps per block, which halves how often the output tiles are reloaded (that traffic dominates at K = 16384).
-  template <class T>
-  static constexpr int64_t KC = sizeof(T) == 2 ? 512 : 256;
-  // An MC x KC block of x stays in L2 (384 KB at MR = 12) while every panel of the thread streams past it once: the
-  // larger the block, the fewer times the weights are read from memory (the prefix's M of ~300 is one block).
+  // k steps per block: a thread's output tiles are reloaded once per block, so longer blocks mean less of that traffic
+  // (a 512-step block of f32 weights, 64 KB, overflows L1 but streams through it in order, which costs less than
+  // twice the reloads; measured on the pi0 shapes against 256 and 1024).
+  static constexpr int64_t KC = 512;
+  // A block of MC rows x KC of packed x stays in L2 (up to 1.3 MB at MR = 14) while every panel of the thread streams
+  // past it once: the larger the block, the fewer times the weights are read from memory.
   static constexpr int64_t MC = 32 * MR;
   static int64_t min(int64_t a, int64_t b) { return a < b ? a : b; }
+
+  // Rows are cut into `tiles` tiles of nearly equal height (50 rows: 4 tiles of 12 or 13 at MR = 14, not 3 of 14 and
+  // one of 8, whose weight loads would serve 8 rows).
+  struct RowTile {
+    int64_t first;
+    int rows;
+  };
+  static int64_t row_tiles(int64_t m) { return (m + MR - 1) / MR; }
+  static RowTile row_tile(int64_t m, int64_t tiles, int64_t t) {
+    const int64_t first = m * t / tiles;
+    return {first, int(m * (t + 1) / tiles - first)};
+  }
+
+  // x packed per row tile, k-major: tile t's element (r, k) at xp[(t * K + k) * MR + r]. A k step's MR broadcasts then
+  // read one or two cache lines instead of MR rows a row stride apart (strides of 4 KB multiples alias in L1), and the
+  // hardware prefetcher follows one stream per tile. Unused slots of a short tile are never read.
+  static void pack_x_tile(const PanelGemmArgs& a, int64_t tiles, int64_t t, float* xp) {
+    const RowTile tile = row_tile(a.m, tiles, t);
+    float* dst = xp + t * a.k * MR;
+    for (int r = 0; r < tile.rows; ++r) {
+      const float* src = a.x + (tile.first + r) * a.lda;
+      for (int64_t k = 0; k < a.k; ++k) dst[k * MR + r] = src[k];
+    }
+  }
 
   // acc = (first ? (accumulate ? y : 0) : y) + x[rows, k0:k0+kc] W^T; the last block adds the bias.
   // Each element's k loop runs in index order with one rounding per step, whatever `rows` is.
   // `prefetch` (or null): the panel block the thread reads next, fetched one k step per k step so that it is in cache
-  // when its first tile starts (with 50 rows a block serves only 5 tiles, and the first one would wait on memory).
+  // when its first tile starts (with 50 rows a block serves only 4 tiles, and the first one would wait on memory).
+  // `y_next` (or null): the output tile that follows, whose rows (MR rows a row stride apart, often in L3 by then) are
+  // fetched during this tile's first 2 * MR k steps so that its accumulator loads do not wait on them.
   template <class T, int R>
-  static void tile(const float* x, int64_t lda, const T* panel, int64_t kc, const float* bias, float* y,
-                   int64_t ldy, bool load_y, bool last, const T* prefetch) {
+  static void tile(const float* x, const T* panel, int64_t kc, const float* bias, float* y, int64_t ldy, bool load_y,
+                   bool last, const T* prefetch, const float* y_next) {
     reg acc[R][2];
     for (int r = 0; r < R; ++r) {
       acc[r][0] = load_y ? V::load(y + r * ldy) : V::zero();
@@ -51,10 +78,11 @@ struct PanelGemm {
       if (prefetch)
         for (std::size_t line = 0; line < NR * sizeof(T); line += 64)
           __builtin_prefetch(reinterpret_cast<const char*>(prefetch + k * NR) + line);
+      if (y_next && k < 2 * MR) __builtin_prefetch(y_next + (k >> 1) * ldy + (k & 1) * (NR / 2), 1);
       reg b0, b1;
       V::widen_row(panel + k * NR, b0, b1);
       for (int r = 0; r < R; ++r) {
-        const reg a = V::broadcast(x[r * lda + k]);
+        const reg a = V::broadcast(x[k * MR + r]);
         acc[r][0] = V::fma(a, b0, acc[r][0]);
         acc[r][1] = V::fma(a, b1, acc[r][1]);
       }
@@ -73,30 +101,28 @@ struct PanelGemm {
   }
 
   template <class T, int R>
-  static void tile_rows(int rows, const float* x, int64_t lda, const T* panel, int64_t kc, const float* bias,
-                        float* y, int64_t ldy, bool load_y, bool last, const T* prefetch) {
+  static void tile_rows(int rows, const float* x, const T* panel, int64_t kc, const float* bias, float* y, int64_t ldy,
+                        bool load_y, bool last, const T* prefetch, const float* y_next) {
     if constexpr (R > 0) {
-      if (rows == R) return tile<T, R>(x, lda, panel, kc, bias, y, ldy, load_y, last, prefetch);
-      return tile_rows<T, R - 1>(rows, x, lda, panel, kc, bias, y, ldy, load_y, last, prefetch);
+      if (rows == R) return tile<T, R>(x, panel, kc, bias, y, ldy, load_y, last, prefetch, y_next);
+      return tile_rows<T, R - 1>(rows, x, panel, kc, bias, y, ldy, load_y, last, prefetch, y_next);
     }
   }
 
-  // Columns [p0, p1) of the output, as panels: every k block in order, so each element's chain is the same whichever
-  // thread runs the range and however the panels were cut into ranges.
+  // Columns [p0, p1) of the output, as panels, from x packed by pack_x_tile: every k block in order, so each
+  // element's chain is the same whichever thread runs the range and however the panels were cut into ranges.
   template <class T>
-  static void run_panels(const PanelGemmArgs& a, int64_t p0, int64_t p1) {
+  static void run_panels(const PanelGemmArgs& a, const float* xp, int64_t p0, int64_t p1) {
     const T* panels = static_cast<const T*>(a.panels);
     alignas(64) float edge[MR * NR];  // the last panel's tile when N is not a multiple of NR
-    for (int64_t k0 = 0; k0 < a.k; k0 += KC<T>) {
-      const int64_t kc = min(KC<T>, a.k - k0);
+    const int64_t tiles = row_tiles(a.m);
+    const int64_t blocks = (tiles * MR + MC - 1) / MC;
+    for (int64_t k0 = 0; k0 < a.k; k0 += KC) {
+      const int64_t kc = min(KC, a.k - k0);
       const bool first = k0 == 0, last = k0 + kc == a.k;
       const bool load_y = !first || a.accumulate;
-      // Row blocks and the tiles within a block are split evenly (50 rows: 5 tiles of 10 at MR = 12, not 4 of 12
-      // and one of 2, whose weight loads would serve 4 FMAs per k step).
-      const int64_t blocks = (a.m + MC - 1) / MC;
       for (int64_t b = 0; b < blocks; ++b) {
-        const int64_t i0 = a.m * b / blocks, mc = a.m * (b + 1) / blocks - i0;
-        const int64_t tiles = (mc + MR - 1) / MR;
+        const int64_t t0 = tiles * b / blocks, t1 = tiles * (b + 1) / blocks;
         for (int64_t p = p0; p < p1; ++p) {
           const T* panel = panels + p * a.k * NR + k0 * NR;
           const float* bias = a.bias + p * NR;
@@ -104,21 +130,27 @@ struct PanelGemm {
           // The next panel's block of the same k range, which the first tile fetches (the range's last panel has
           // no successor here; the next k range starts with a fresh stream).
           const T* next = p + 1 < p1 ? panel + a.k * NR : nullptr;
-          for (int64_t t_row = 0; t_row < tiles; ++t_row) {
-            const int64_t i = i0 + mc * t_row / tiles;
-            const int rows = int(i0 + mc * (t_row + 1) / tiles - i);
-            const float* x = a.x + i * a.lda + k0;
-            float* y = a.y + i * a.ldy + p * NR;
-            const T* prefetch = t_row == 0 ? next : nullptr;
+          for (int64_t t = t0; t < t1; ++t) {
+            const RowTile tile = row_tile(a.m, tiles, t);
+            const float* x = xp + (t * a.k + k0) * MR;
+            float* y = a.y + tile.first * a.ldy + p * NR;
+            const T* prefetch = t == t0 ? next : nullptr;
+            // The output tile after this one, when this block reads y at all: the next row tile, or the block's first
+            // one in the next panel.
+            const float* y_next = nullptr;
+            if (load_y) {
+              if (t + 1 < t1) y_next = a.y + row_tile(a.m, tiles, t + 1).first * a.ldy + p * NR;
+              else if (p + 1 < p1 && (p + 1) * NR < a.n) y_next = a.y + row_tile(a.m, tiles, t0).first * a.ldy + (p + 1) * NR;
+            }
             if (cols == NR) {
-              tile_rows<T, MR>(rows, x, a.lda, panel, kc, bias, y, a.ldy, load_y, last, prefetch);
+              tile_rows<T, MR>(tile.rows, x, panel, kc, bias, y, a.ldy, load_y, last, prefetch, y_next);
             } else {
-              for (int r = 0; r < rows; ++r) {
+              for (int r = 0; r < tile.rows; ++r) {
                 if (load_y) std::memcpy(edge + r * NR, y + r * a.ldy, std::size_t(cols) * sizeof(float));
                 std::memset(edge + r * NR + cols, 0, std::size_t(NR - cols) * sizeof(float));
               }
-              tile_rows<T, MR>(rows, x, a.lda, panel, kc, bias, edge, NR, load_y, last, prefetch);
-              for (int r = 0; r < rows; ++r)
+              tile_rows<T, MR>(tile.rows, x, panel, kc, bias, edge, NR, load_y, last, prefetch, nullptr);
+              for (int r = 0; r < tile.rows; ++r)
                 std::memcpy(y + r * a.ldy, edge + r * NR, std::size_t(cols) * sizeof(float));
             }
           }
@@ -127,23 +159,41 @@ struct PanelGemm {
     }
   }
 
+  // Scratch for packed x, grown once per calling thread and then reused (a nested call, e.g. from attention's
+  // parallel heads, runs on its own thread's buffer).
+  static float* packed_x_scratch(std::size_t floats) {
+    thread_local std::vector<float> scratch;
+    if (scratch.size() < floats) scratch.resize(floats);
+    return scratch.data();
+  }
+
   template <class T>
   static void run(const PanelGemmArgs& a) {
+    if (a.m <= 0 || a.n <= 0) return;
     const int64_t num_panels = (a.n + NR - 1) / NR;
+    const int64_t tiles = row_tiles(a.m);
+    float* xp = packed_x_scratch(std::size_t(tiles * MR * a.k));
     const int64_t flops = 2 * a.m * a.n * a.k;
     const int threads = flops < (int64_t(1) << 20) ? 1 : int(min(omp_get_max_threads(), num_panels));
-    if (threads == 1) return run_panels<T>(a, 0, num_panels);
+    if (threads == 1) {
+      for (int64_t t = 0; t < tiles; ++t) pack_x_tile(a, tiles, t, xp);
+      return run_panels<T>(a, xp, 0, num_panels);
+    }
     // Threads take ranges of panels (columns) from a shared counter, so no two threads touch the same output element
     // and no reduction is ever split: the result does not depend on the thread count. Ranges are handed out as
     // threads become free because a static split leaves the faster thread idle at the end of every GEMM (cores of a
-    // shared machine do not run at one speed). Each range re-reads the rows of x, so there are only a few per thread.
+    // shared machine do not run at one speed). x is packed once, by all threads, before any range starts.
     const int64_t range = (num_panels + kRangesPerThread * threads - 1) / (kRangesPerThread * threads);
     std::atomic<int64_t> next_panel{0};
 #pragma omp parallel num_threads(threads)
-    for (;;) {
-      const int64_t p0 = next_panel.fetch_add(range, std::memory_order_relaxed);
-      if (p0 >= num_panels) break;
-      run_panels<T>(a, p0, min(p0 + range, num_panels));
+    {
+#pragma omp for schedule(static)
+      for (int64_t t = 0; t < tiles; ++t) pack_x_tile(a, tiles, t, xp);
+      for (;;) {
+        const int64_t p0 = next_panel.fetch_add(range, std::memory_order_relaxed);
+        if (p0 >= num_panels) break;
+        run_panels<T>(a, xp, p0, min(p0 + range, num_panels));
+      }
     }
   }
   static constexpr int64_t kRangesPerThread = 4;
