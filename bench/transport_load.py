@@ -20,8 +20,12 @@ the same 224x224 RGB image a transport hands to the engine, with the same state 
 before and right after each transport's 1-client run, and the mean of the two is the baseline, so a change in the
 machine's load between transports hits both sides. "p50 over engine" is everything the server and the client add: the
 client library, the wire, the server's decoding and encoding, the batcher's hand-off to the inference thread, the
-wedges and the metrics. Where the reply says so (HTTP, Tether ZMQ, openpi), "server p50" is the server's own measure
-of a request, from its first byte read to its answer, so the rest of the overhead is the client library and the wire.
+wedges and the metrics. Every transport's reply carries the server's own timing of the request (/act's latency_ms,
+KServe's response parameters, GR00T's info): "server p50" is from its first byte read to its answer, "predict p50" the
+forward pass alone, timed as `tether bench` times it. "p50 over own predict" subtracts each request's own forward pass
+from its client latency: the same overhead, measured within one request, so it does not move when the machine's speed
+drifts between the baseline runs and the load (shared VMs drift by tens of percent over minutes). At 16 clients it
+also holds the wait behind other clients' batches.
 """
 
 from __future__ import annotations
@@ -41,7 +45,7 @@ import tempfile
 import time
 import zlib
 from pathlib import Path
-from typing import Callable, Dict, List, Optional, Tuple
+from typing import Callable, Dict, List, Tuple
 
 import numpy as np
 
@@ -67,16 +71,24 @@ def write_png(path: Path, rgb: np.ndarray) -> None:
 
 
 # Each act() returns the server's own total for the request (ms) when the reply carries it, else None.
+Timing = Tuple[float, float]  # the server's (total, predict) ms for one request, from its reply
+
+
+def timing_of(latency: dict) -> Timing:
+    """/act's latency_ms (total: the server's time for the request; predict: the forward pass, as `tether bench`)."""
+    return float(latency["total"]), float(latency["predict"])
+
+
 def make_client(transport: str, host: str, ports: Dict[str, int], camera: str,
-                state: List[float]) -> Callable[[int], Optional[float]]:
+                state: List[float]) -> Callable[[int], Timing]:
     img = frame()
     st = np.asarray(state, np.float32)
     if transport == "http":
         from tether_client import TetherClient
         client = TetherClient(f"http://{host}:{ports['http']}", api_key="", timeout=60, body_format="msgpack")
 
-        def act(seed: int) -> Optional[float]:
-            return client.act(images={camera: img}, state=state, instruction=INSTRUCTION, seed=seed).latency_ms["total"]
+        def act(seed: int) -> Timing:
+            return timing_of(client.act(images={camera: img}, state=state, instruction=INSTRUCTION, seed=seed).latency_ms)
         return act
     if transport == "http-json":
         conn = http.client.HTTPConnection(host, ports["http"], timeout=60)
@@ -84,14 +96,14 @@ def make_client(transport: str, host: str, ports: Dict[str, int], camera: str,
         conn.sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
         raw = {"data": base64.b64encode(img.tobytes()).decode(), "shape": list(img.shape)}
 
-        def act(seed: int) -> Optional[float]:
+        def act(seed: int) -> Timing:
             body = json.dumps({"instruction": INSTRUCTION, "state": state, "images": {camera: raw}, "seed": seed})
             conn.request("POST", "/act", body, {"Content-Type": "application/json"})
             r = conn.getresponse()
             data = r.read()
             if r.status != 200:
                 raise RuntimeError(f"/act {r.status}: {data[:200]!r}")
-            return json.loads(data)["latency_ms"]["total"]
+            return timing_of(json.loads(data)["latency_ms"])
         return act
     if transport == "kserve":
         import tritonclient.http as triton
@@ -99,7 +111,7 @@ def make_client(transport: str, host: str, ports: Dict[str, int], camera: str,
         name = client.get_server_metadata()  # warms the connection
         model = ports["model_name"]
 
-        def act(seed: int) -> Optional[float]:
+        def act(seed: int) -> Timing:
             inputs = [triton.InferInput("instruction", [1], "BYTES"), triton.InferInput("state", [1, len(st)], "FP32"),
                       triton.InferInput(f"image.{camera}", [1, *img.shape], "UINT8"), triton.InferInput("seed", [1], "INT64")]
             inputs[0].set_data_from_numpy(np.array([INSTRUCTION.encode()], dtype=np.object_))
@@ -108,17 +120,18 @@ def make_client(transport: str, host: str, ports: Dict[str, int], camera: str,
             inputs[3].set_data_from_numpy(np.array([seed], np.int64))
             result = client.infer(model, inputs, outputs=[triton.InferRequestedOutput("actions")])
             result.as_numpy("actions")
-            return None
+            params = result.get_response()["parameters"]
+            return float(params["tether_total_ms"]), float(params["tether_predict_ms"])
         del name
         return act
     if transport == "openpi":
         from openpi_client import websocket_client_policy
         policy = websocket_client_policy.WebsocketClientPolicy(host, ports["openpi"])
 
-        def act(seed: int) -> Optional[float]:
+        def act(seed: int) -> Timing:
             del seed  # openpi's protocol has no seed: the server derives one per request
             reply = policy.infer({"observation/image": img, "observation/state": st, "prompt": INSTRUCTION})
-            return reply["tether"]["latency_ms"]["total"]
+            return timing_of(reply["tether"]["latency_ms"])
         return act
     if transport == "gr00t":
         import msgpack
@@ -132,26 +145,26 @@ def make_client(transport: str, host: str, ports: Dict[str, int], camera: str,
             np.save(buf, a, allow_pickle=False)
             return {"__ndarray_class__": True, "as_npy": buf.getvalue()}
 
-        def act(seed: int) -> Optional[float]:
+        def act(seed: int) -> Timing:
             obs = {"video": {camera: npy(img[None, None])}, "state": {"state": npy(st[None, None])},
                    "language": {"task": [[INSTRUCTION]]}}
             sock.send(msgpack.packb({"endpoint": "get_action", "data": {"observation": obs, "options": {"seed": seed}}}))
             reply = msgpack.unpackb(sock.recv())
             if isinstance(reply, dict) and "error" in reply:
                 raise RuntimeError(reply["error"])
-            return None
+            return timing_of(reply[1]["tether"][0]["latency_ms"])
         return act
     if transport == "zmq":
         from tether_client import TetherClient
         client = TetherClient(f"http://{host}:{ports['http']}", transport="zmq", zmq_url=f"tcp://{host}:{ports['zmq']}")
 
-        def act(seed: int) -> Optional[float]:
-            return client.act(img, state=state, instruction=INSTRUCTION, seed=seed).latency_ms["total"]
+        def act(seed: int) -> Timing:
+            return timing_of(client.act(img, state=state, instruction=INSTRUCTION, seed=seed).latency_ms)
         return act
     raise SystemExit(f"unknown transport {transport}")
 
 
-def client_process(args) -> Tuple[List[float], List[float]]:
+def client_process(args) -> Tuple[List[float], List[Tuple[float, float]]]:
     transport, host, ports, camera, state, requests, index, barrier = args
     act = make_client(transport, host, ports, camera, state)
     for warm in range(3):  # connection set-up and first requests: not timed
@@ -160,10 +173,9 @@ def client_process(args) -> Tuple[List[float], List[float]]:
     times, server = [], []
     for i in range(requests):
         t0 = time.perf_counter()
-        server_ms = act(index * 100000 + i + 1)
+        timing = act(index * 100000 + i + 1)
         times.append((time.perf_counter() - t0) * 1000)
-        if server_ms is not None:
-            server.append(server_ms)
+        server.append(timing)
     return times, server
 
 
@@ -223,8 +235,8 @@ def main() -> None:
         cpu = next((l.split(":", 1)[1].strip() for l in open("/proc/cpuinfo") if l.startswith("model name")), "?")
         print(f"checkpoint {a.checkpoint}; CPU {cpu}, {os.cpu_count()} cores")
         print("| transport | clients | requests | throughput (req/s) | p50 (ms) | p99 (ms) | engine p50 (ms) | "
-              "p50 over engine (ms) | server p50 (ms) |")
-        print("|---|---:|---:|---:|---:|---:|---:|---:|---:|")
+              "p50 over engine (ms) | server p50 (ms) | predict p50 (ms) | p50 over own predict (ms) |")
+        print("|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
         for transport in transports:
             engine_before = engine_latency(binary, a.checkpoint, camera, png, state)
             engine_p50 = engine_before
@@ -240,13 +252,16 @@ def main() -> None:
                 if n == clients[0]:  # the engine again right after: the baseline is the mean of both sides
                     engine_p50 = (engine_before + engine_latency(binary, a.checkpoint, camera, png, state)) / 2
                 lat = np.array([t for r, _ in results for t in r])
-                server_ms = [t for _, s in results for t in s]
+                timings = np.array([t for _, s in results for t in s])  # (total, predict) per request
+                # Per request: the client's latency minus that very request's forward pass. Unlike the p50 over the
+                # engine baseline it does not move when the machine's speed drifts between the two measurements.
+                over_own = lat - timings[:, 1]
                 # Throughput over the timed part: requests / the slowest client's total.
                 span = max(sum(r) for r, _ in results) / 1000
                 p50, p99 = np.percentile(lat, 50), np.percentile(lat, 99)
-                server_p50 = f"{np.percentile(server_ms, 50):.2f}" if server_ms else "-"
                 print(f"| {transport} | {n} | {lat.size} | {lat.size / span:.1f} | {p50:.2f} | {p99:.2f} | "
-                      f"{engine_p50:.2f} | {p50 - engine_p50:+.2f} | {server_p50} |", flush=True)
+                      f"{engine_p50:.2f} | {p50 - engine_p50:+.2f} | {np.percentile(timings[:, 0], 50):.2f} | "
+                      f"{np.percentile(timings[:, 1], 50):.2f} | {np.percentile(over_own, 50):+.2f} |", flush=True)
                 del wall
     finally:
         server.terminate()

@@ -193,6 +193,8 @@ def test_infer_binary_matches_act(server):
     response = result.get_response()
     assert response["id"] == "kserve-bin-1" and response["model_name"] == MODEL
     assert all("binary_data_size" in o["parameters"] for o in response["outputs"])
+    timing = response["parameters"]  # the server's time and the forward pass's, for the client to tell apart
+    assert 0 < timing["tether_predict_ms"] <= timing["tether_total_ms"]
     actions = result.as_numpy("actions")
     assert actions.dtype == np.float32 and actions.shape == (1, CHUNK, DIM)
     np.testing.assert_array_equal(actions[0], expected)

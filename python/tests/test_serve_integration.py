@@ -148,10 +148,10 @@ def test_act_base64_png(server):
     assert data["model_hash"] == model_hash()
     assert data["inference_mode"]["backend"] == "cpu" and data["inference_mode"]["precision"] == "fp32"
     assert isinstance(data["inference_mode"]["gemm"], str) and data["inference_mode"]["gemm"]
-    stages = {"total", "queue", "preprocess", "vision", "prefix", "denoise", "postprocess"}
+    stages = {"total", "queue", "preprocess", "vision", "prefix", "denoise", "postprocess", "predict"}
     assert set(data["latency_ms"]) == stages
     assert all(v >= 0 for v in data["latency_ms"].values())
-    assert data["latency_ms"]["total"] >= data["latency_ms"]["denoise"]
+    assert data["latency_ms"]["total"] >= data["latency_ms"]["predict"] >= data["latency_ms"]["denoise"]
     assert data["episode_id"] is None and data["warnings"] == [] and data["batch_size"] >= 1
 
 

@@ -332,6 +332,9 @@ ActResponse ActPipeline::respond(Act& a, const RequestContext& ctx, ActTrace& tr
     latency[name] = ms;
     metrics_.observe_stage(name, ms / 1000.0);
   }
+  // The policy's whole forward pass for this request's batch, as `tether bench` times it (the stages above plus what
+  // lies between them): `total` minus this is what the transport, the queue and the wedges added to the request.
+  if (ran) latency["predict"] = ran->predict_ms;
   Json body = {{"actions", actions_json},
                {"num_actions", a.rows},
                {"action_dim", dim},

@@ -271,6 +271,10 @@ net::awaitable<HttpResponse> KServeEndpoints::run_items(const HttpRequest& req, 
       a.rows = body.at("num_actions").get<int64_t>();
       a.dim = body.at("action_dim").get<int64_t>();
       a.action_source = body.value("action_source", std::string("model"));
+      if (const auto latency = body.find("latency_ms"); latency != body.end() && latency->is_object()) {
+        a.total_ms = latency->value("total", 0.0);
+        a.predict_ms = latency->value("predict", 0.0);
+      }
       a.actions.reserve(std::size_t(a.rows * a.dim));
       for (const auto& row : body.at("actions"))
         for (const auto& v : row) a.actions.push_back(v.get<float>());

@@ -516,6 +516,14 @@ EncodedResponse encode_infer_response(const std::string& model_name, const Infer
   }
   Json res = {{"model_name", model_name}, {"model_version", kModelVersion}};
   if (req.id) res["id"] = *req.id;
+  // Timing as scalar parameters (v2 allows only strings, numbers and booleans there): the server's time for the
+  // request and the forward pass's, so a client can tell the transport's share from the model's.
+  double total_ms = 0, predict_ms = 0;
+  for (const auto& item : items) {
+    total_ms = std::max(total_ms, item.total_ms);
+    predict_ms = std::max(predict_ms, item.predict_ms);
+  }
+  res["parameters"] = {{"tether_total_ms", total_ms}, {"tether_predict_ms", predict_ms}};
   res["outputs"] = std::move(outputs);
   EncodedResponse enc;
   enc.body = res.dump(-1, ' ', false, Json::error_handler_t::replace);

@@ -55,6 +55,8 @@ struct ItemAnswer {
   std::vector<float> actions;  // rows * dim, row-major
   int64_t rows = 0, dim = 0;
   std::string action_source = "model";
+  // The item's /act latency_ms total and predict (see docs/serve-api.md); the response's parameters carry the largest.
+  double total_ms = 0, predict_ms = 0;
 };
 
 struct EncodedResponse {

@@ -157,6 +157,11 @@ TEST(ServerKServeEndpoints, InferJsonAndABatchOfTwo) {
   EXPECT_EQ(j["outputs"][0]["shape"], Json({2, 3, 2}));
   EXPECT_EQ(j["outputs"][0]["data"][6], 11.0);  // item 1's first action: state 11
   EXPECT_EQ(s.model.last_batch.load(), 2);
+  // The server's and the forward pass's time, as scalar parameters.
+  ASSERT_TRUE(j["parameters"]["tether_total_ms"].is_number()) << j.dump();
+  ASSERT_TRUE(j["parameters"]["tether_predict_ms"].is_number()) << j.dump();
+  EXPECT_GT(j["parameters"]["tether_total_ms"].get<double>(), 0.0);
+  EXPECT_LE(j["parameters"]["tether_predict_ms"].get<double>(), j["parameters"]["tether_total_ms"].get<double>());
 
   const std::string metrics = http_get(s.port(), "/metrics").body;
   EXPECT_NE(metrics.find("tether_requests_total{transport=\"kserve\",endpoint=\"/v2/models/{name}/infer\",status=\"200\"} 3"),

@@ -191,8 +191,9 @@ TEST(Server, ActReturnsTheChunkAndItsMetadata) {
   EXPECT_EQ(j["batch_size"], 1);
   EXPECT_TRUE(j["episode_id"].is_null());
   EXPECT_EQ(j["inference_mode"]["backend"], "cpu");
-  for (const char* stage : {"total", "queue", "preprocess", "vision", "prefix", "denoise", "postprocess"})
+  for (const char* stage : {"total", "queue", "preprocess", "vision", "prefix", "denoise", "postprocess", "predict"})
     EXPECT_TRUE(j["latency_ms"].contains(stage)) << stage;
+  EXPECT_LE(j["latency_ms"]["predict"].get<double>(), j["latency_ms"]["total"].get<double>());
 }
 
 TEST(Server, DefaultSeedComesFromTheRequestId) {
