@@ -202,6 +202,7 @@ def main() -> None:
     cmd = [str(binary), "serve", a.checkpoint, "--port", "0", "--batch-timeout-ms", "0", "--max-batch", "16",
            "--openpi-port", "0", "--gr00t-port", "0", "--zmq-port", "0", "--model-name", "demo"]
     server = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
+    scratch = tempfile.TemporaryDirectory(prefix="tether_transport_load_")
     try:
         ports: Dict[str, int] = {"model_name": "demo"}  # type: ignore[dict-item]
         host = "127.0.0.1"
@@ -229,7 +230,7 @@ def main() -> None:
         camera = config["cameras"][0].replace("observation.images.", "")
         state = [0.0] * int(config["state_dim"])
 
-        png = Path(tempfile.mkdtemp(prefix="tether_transport_load_")) / "frame.png"
+        png = Path(scratch.name) / "frame.png"
         write_png(png, frame())
 
         cpu = next((l.split(":", 1)[1].strip() for l in open("/proc/cpuinfo") if l.startswith("model name")), "?")
@@ -266,6 +267,7 @@ def main() -> None:
     finally:
         server.terminate()
         server.wait(timeout=30)
+        scratch.cleanup()
 
 
 if __name__ == "__main__":

@@ -10,6 +10,7 @@
 #include <fstream>
 #include <iterator>
 #include <string>
+#include "scratch_dir.h"
 
 // TETHER_MAX_CPU_ISA values below what this CPU may have, lowest first; the first has no bf16 instructions.
 #if defined(__x86_64__)
@@ -26,7 +27,7 @@ struct CliRun {
 // `args` are already shell-quoted.
 inline CliRun run_tether(const std::string& args) {
   const std::filesystem::path err_file =
-      std::filesystem::temp_directory_path() / ("tether_cli_err_" + std::to_string(::getpid()));
+      tether::testing::scratch_dir() / "cli_err";
   const std::string cmd = std::string(TETHER_BINARY) + " " + args + " 2>" + err_file.string();
   CliRun r;
   FILE* pipe = popen(cmd.c_str(), "r");
@@ -35,7 +36,11 @@ inline CliRun run_tether(const std::string& args) {
   while ((n = fread(buf.data(), 1, buf.size(), pipe)) > 0) r.out.append(buf.data(), n);
   const int status = pclose(pipe);
   r.code = WIFEXITED(status) ? WEXITSTATUS(status) : -1;
-  std::ifstream in(err_file);
-  r.err.assign(std::istreambuf_iterator<char>(in), {});
+  {
+    std::ifstream in(err_file);
+    r.err.assign(std::istreambuf_iterator<char>(in), {});
+  }
+  std::error_code ignored;
+  std::filesystem::remove(err_file, ignored);
   return r;
 }

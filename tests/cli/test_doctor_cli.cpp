@@ -6,6 +6,7 @@
 
 #include "cli_runner.h"
 #include "core/json_util.h"
+#include "scratch_dir.h"
 
 using namespace tether;
 namespace fs = std::filesystem;
@@ -28,7 +29,7 @@ TEST(DoctorCli, ReportsMachineAndModel) {
 }
 
 TEST(DoctorCli, BrokenModelFailsWithRemedy) {
-  const fs::path dir = fs::temp_directory_path() / ("tether_doctor_" + std::to_string(::getpid()));
+  const fs::path dir = tether::testing::scratch_dir() / "doctor";
   fs::create_directories(dir);
   const CliRun r = run_tether("doctor " + dir.string());
   EXPECT_EQ(r.code, 1) << r.out;

@@ -9,6 +9,7 @@
 #include "cli_runner.h"
 #include "core/json_util.h"
 #include "core/safetensors.h"
+#include "scratch_dir.h"
 
 using namespace tether;
 namespace fs = std::filesystem;
@@ -18,7 +19,7 @@ namespace {
 const std::string kFixture = std::string(TETHER_FIXTURES_DIR) + "/smolvla/cam1_stats/checkpoint";
 
 fs::path fresh(const std::string& name) {
-  const fs::path p = fs::temp_directory_path() / ("tether_export_" + std::to_string(::getpid()) + "_" + name);
+  const fs::path p = tether::testing::scratch_dir() / ("export_" + name);
   fs::remove_all(p);
   return p;
 }

@@ -11,6 +11,7 @@
 
 #include "cli_runner.h"
 #include "core/json_util.h"
+#include "scratch_dir.h"
 
 using namespace tether;
 namespace fs = std::filesystem;
@@ -26,7 +27,7 @@ CliRun run_with_env(const std::string& var, const std::string& value, const std:
 }
 
 fs::path write_registry(const std::string& name, const std::string& text) {
-  const fs::path dir = fs::temp_directory_path() / ("tether_models_" + std::to_string(::getpid()));
+  const fs::path dir = tether::testing::scratch_dir() / "models";
   fs::create_directories(dir);
   std::ofstream(dir / name) << text;
   return dir / name;
@@ -168,7 +169,7 @@ TEST(ModelsCli, RegistryFigureErrorsNameTheEntryAndField) {
 TEST(GoProbe, PrintsTheMachineBeforeAnythingElse) {
   // A model that cannot be pulled (offline, nothing in an empty cache) fails after the probe: the probe lines come
   // first, then the one error line. Offline, so that the test never starts a real multi-gigabyte download.
-  const fs::path cache = fs::temp_directory_path() / ("tether_go_probe_empty_" + std::to_string(::getpid()));
+  const fs::path cache = tether::testing::scratch_dir() / "go_probe_empty";
   ::setenv("HF_HUB_CACHE", cache.c_str(), 1);
   ::setenv("HF_HUB_OFFLINE", "1", 1);
   const CliRun r = run_tether("go --model pi05-base");
@@ -190,7 +191,7 @@ TEST(GoProbe, PrintsTheMachineBeforeAnythingElse) {
 
 TEST(GoProbe, SaysWhyThePrecisionWasPicked) {
   // A supported entry that is not on disk: go probes, picks the precision, then fails to pull (offline) with exit 2.
-  const fs::path cache = fs::temp_directory_path() / ("tether_go_probe_" + std::to_string(::getpid()));
+  const fs::path cache = tether::testing::scratch_dir() / "go_probe";
   const fs::path reg = write_registry(
       "go.json", R"({"models": {"small": {"family": "smolvla", "hf_repo": "tether-test/small", "supported": true,
                                           "parameters": 1000000},

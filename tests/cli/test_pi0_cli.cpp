@@ -10,6 +10,7 @@
 #include "cli_runner.h"
 #include "core/json_util.h"
 #include "core/safetensors.h"
+#include "scratch_dir.h"
 
 using namespace tether;
 namespace fs = std::filesystem;
@@ -45,7 +46,7 @@ std::string read(const fs::path& p) {
 struct Scratch {
   fs::path path;
   explicit Scratch(const std::string& name)
-      : path(fs::temp_directory_path() / ("tether_pi0_cli_" + std::to_string(::getpid()) + "_" + name)) {
+      : path(tether::testing::scratch_dir() / ("pi0_cli_" + name)) {
     fs::remove_all(path);
     fs::create_directories(path);
   }
@@ -55,7 +56,7 @@ struct Scratch {
 
 // The binary run under `prefix` (environment assignments, a wrapper such as `timeout 60`), stderr apart.
 CliRun run_prefixed(const std::string& prefix, const std::string& args) {
-  const fs::path err_file = fs::temp_directory_path() / ("tether_pi0_cli_err_" + std::to_string(::getpid()));
+  const fs::path err_file = tether::testing::scratch_dir() / "pi0_cli_err";
   CliRun r;
   FILE* pipe = popen((prefix + " " + TETHER_BINARY + " " + args + " 2>" + err_file.string()).c_str(), "r");
   char buf[4096];

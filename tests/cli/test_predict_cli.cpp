@@ -9,6 +9,7 @@
 #include "cli_runner.h"
 #include "core/json_util.h"
 #include "core/safetensors.h"
+#include "scratch_dir.h"
 
 using namespace tether;
 namespace fs = std::filesystem;
@@ -98,7 +99,7 @@ TEST(PredictCli, SameBitsOnEveryDispatchLevel) {
 }
 
 TEST(PredictCli, ExplicitNoiseFile) {
-  const fs::path noise = fs::temp_directory_path() / ("tether_noise_" + std::to_string(::getpid()) + ".safetensors");
+  const fs::path noise = tether::testing::scratch_dir() / "noise.safetensors";
   std::vector<float> zeros(50 * 32, 0.0f);
   write_safetensors(noise.string(), {{"noise", Tensor::from_f32({1, 50, 32}, zeros)}});
   const CliRun r = run_tether("predict " + kGood + " --noise " + noise.string() + " --json");
@@ -138,7 +139,7 @@ TEST(PredictCli, UserErrorsExitTwoWithOneLine) {
 }
 
 TEST(PredictCli, CorruptWeightsNameTheFile) {
-  const fs::path dir = fs::temp_directory_path() / ("tether_corrupt_" + std::to_string(::getpid()));
+  const fs::path dir = tether::testing::scratch_dir() / "corrupt";
   fs::remove_all(dir);
   fs::copy(kDemo, dir, fs::copy_options::recursive);
   fs::resize_file(dir / "model.safetensors", fs::file_size(dir / "model.safetensors") / 2);

@@ -11,6 +11,7 @@
 #include "cli_runner.h"
 #include "core/hash.h"
 #include "core/json_util.h"
+#include "scratch_dir.h"
 
 using namespace tether;
 namespace fs = std::filesystem;
@@ -29,7 +30,7 @@ std::string now_iso() {
 struct TraceDir {
   fs::path path;
   explicit TraceDir(const std::string& name) {
-    path = fs::temp_directory_path() / ("tether_traces_cli_" + std::to_string(::getpid()) + "_" + name);
+    path = tether::testing::scratch_dir() / ("traces_cli_" + name);
     fs::remove_all(path);
     fs::create_directories(path);
   }

@@ -7,6 +7,7 @@
 
 #include "core/error.h"
 #include "core/hash.h"
+#include "scratch_dir.h"
 
 using namespace tether;
 
@@ -19,7 +20,7 @@ TEST(Sha256, FipsVectors) {
 }
 
 TEST(Sha256, HashesFilesLargerThanTheReadBuffer) {
-  const auto path = std::filesystem::temp_directory_path() / ("tether_sha_" + std::to_string(::getpid()));
+  const auto path = tether::testing::scratch_dir() / "sha";
   const std::string data(3 * (1 << 20) + 17, 'a');
   std::ofstream(path, std::ios::binary) << data;
   EXPECT_EQ(sha256_file_hex(path.string()), sha256_hex(data));

@@ -9,17 +9,14 @@
 
 #include "core/error.h"
 #include "core/safetensors.h"
+#include "scratch_dir.h"
 
 using namespace tether;
 namespace fs = std::filesystem;
 
 namespace {
 
-fs::path temp_path(const std::string& name) {
-  fs::path dir = fs::temp_directory_path() / ("tether_test_" + std::to_string(::getpid()));
-  fs::create_directories(dir);
-  return dir / name;
-}
+fs::path temp_path(const std::string& name) { return tether::testing::scratch_dir() / name; }
 
 void write_raw(const fs::path& p, const std::string& header, const std::string& data) {
   std::ofstream out(p, std::ios::binary);

@@ -11,6 +11,7 @@
 #include <string>
 
 #include "hub/hash.h"
+#include "scratch_dir.h"
 
 namespace tether::hub::test {
 
@@ -21,8 +22,7 @@ class ScratchDir {
  public:
   explicit ScratchDir(const std::string& name) {
     static int counter = 0;
-    path_ = fs::temp_directory_path() / ("tether_hub_" + std::to_string(::getpid()) + "_" +
-                                         std::to_string(counter++) + "_" + name);
+    path_ = tether::testing::scratch_dir() / ("hub_" + std::to_string(counter++) + "_" + name);
     fs::remove_all(path_);
     fs::create_directories(path_);
   }

@@ -10,6 +10,7 @@
 
 #include "core/safetensors.h"
 #include "core/tensor.h"
+#include "scratch_dir.h"
 
 namespace tether::test_util {
 
@@ -33,7 +34,7 @@ struct RandomCheckpoint {
   std::string write(const std::string& tag) const {
     std::map<std::string, Tensor> out;
     for (const auto& [name, values] : tensors) out[name] = Tensor{DType::f32, shapes.at(name), values.data(), nullptr};
-    const auto path = std::filesystem::temp_directory_path() / ("tether_" + tag + ".safetensors");
+    const auto path = tether::testing::scratch_dir() / (tag + ".safetensors");
     write_safetensors(path.string(), out);
     return path.string();
   }

@@ -10,6 +10,7 @@
 #include "core/safetensors.h"
 #include "models/family.h"
 #include "models/lerobot/checkpoint.h"
+#include "scratch_dir.h"
 
 using namespace tether;
 using namespace tether::models;
@@ -18,7 +19,7 @@ namespace fs = std::filesystem;
 namespace {
 
 fs::path scratch(const std::string& name) {
-  const fs::path d = fs::temp_directory_path() / ("tether_family_" + std::to_string(::getpid())) / name;
+  const fs::path d = tether::testing::scratch_dir() / "family" / name;
   fs::remove_all(d);
   fs::create_directories(d);
   return d;

@@ -15,6 +15,7 @@
 
 #include "models/family.h"
 #include "vision/image.h"
+#include "scratch_dir.h"
 
 // The replacement operator new/delete pair below uses malloc/free; GCC cannot see that they match.
 #pragma GCC diagnostic ignored "-Wmismatched-new-delete"
@@ -57,7 +58,7 @@ namespace {
 fs::path checkpoint_with_steps(int steps) {
   const fs::path src = fs::path(TETHER_FIXTURES_DIR) / "smolvla" / "cam1_stats" / "checkpoint";
   const fs::path dst =
-      fs::temp_directory_path() / ("tether_steps_" + std::to_string(::getpid()) + "_" + std::to_string(steps));
+      tether::testing::scratch_dir() / ("steps_" + std::to_string(steps));
   fs::remove_all(dst);
   fs::copy(src, dst, fs::copy_options::recursive);
   Json config = read_json_file((dst / "config.json").string());

@@ -10,6 +10,7 @@
 
 #include "core/error.h"
 #include "policy/embodiment.h"
+#include "scratch_dir.h"
 
 using namespace tether;
 using namespace tether::policy;
@@ -20,7 +21,7 @@ namespace {
 const std::string kPresets = std::string(TETHER_SOURCE_DIR) + "/models/embodiments";
 
 fs::path temp_dir() {
-  fs::path dir = fs::temp_directory_path() / ("tether_embodiment_" + std::to_string(::getpid()));
+  fs::path dir = tether::testing::scratch_dir() / "embodiment";
   fs::create_directories(dir);
   return dir;
 }

@@ -9,6 +9,7 @@
 
 #include "core/safetensors.h"
 #include "policy/policy.h"
+#include "scratch_dir.h"
 
 using namespace tether;
 namespace fs = std::filesystem;
@@ -30,7 +31,7 @@ std::vector<float> predict(policy::Policy& p, const fs::path& case_dir) {
 
 TEST(FamilyCheckpoints, ShardedWeightsPredictTheSameBits) {
   const fs::path src = kFixtures / "cam1_stats" / "checkpoint";
-  const fs::path dst = fs::temp_directory_path() / ("tether_sharded_" + std::to_string(::getpid()));
+  const fs::path dst = tether::testing::scratch_dir() / "sharded";
   fs::remove_all(dst);
   fs::copy(src, dst, fs::copy_options::recursive);
   fs::remove(dst / "model.safetensors");

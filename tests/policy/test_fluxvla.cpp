@@ -11,6 +11,7 @@
 #include "core/safetensors.h"
 #include "models/pi05_fluxvla.h"
 #include "policy/policy.h"
+#include "scratch_dir.h"
 
 using namespace tether;
 using namespace tether::models;
@@ -26,7 +27,7 @@ struct Captured {
 };
 
 fs::path scratch(const std::string& name) {
-  const fs::path d = fs::temp_directory_path() / ("tether_fluxvla_" + std::to_string(::getpid())) / name;
+  const fs::path d = tether::testing::scratch_dir() / "fluxvla" / name;
   fs::remove_all(d);
   fs::create_directories(d.parent_path());
   return d;

@@ -8,6 +8,7 @@
 #include "core/safetensors.h"
 #include "models/lerobot/checkpoint.h"
 #include "policy/normalizer.h"
+#include "scratch_dir.h"
 
 using namespace tether;
 using namespace tether::policy;
@@ -16,7 +17,7 @@ namespace fs = std::filesystem;
 namespace {
 
 fs::path make_checkpoint(const std::string& name, const std::string& mode, const std::map<std::string, std::vector<float>>& stats) {
-  fs::path dir = fs::temp_directory_path() / ("tether_norm_" + std::to_string(::getpid())) / name;
+  fs::path dir = tether::testing::scratch_dir() / "norm" / name;
   fs::create_directories(dir);
   Json features = {{"observation.state", {{"type", "STATE"}, {"shape", {2}}}}, {"action", {{"type", "ACTION"}, {"shape", {2}}}}};
   Json step = {{"registry_name", "normalizer_processor"},

@@ -14,6 +14,7 @@
 
 #include "core/json_util.h"
 #include "runtime/action_guard.h"
+#include "scratch_dir.h"
 
 using namespace tether;
 using namespace tether::runtime;
@@ -56,7 +57,7 @@ void expect_violation(const GuardViolation& v, int64_t step, const std::string& 
 }
 
 fs::path temp_path(const std::string& name) {
-  fs::path dir = fs::temp_directory_path() / ("tether_guard_" + std::to_string(::getpid()));
+  fs::path dir = tether::testing::scratch_dir() / "guard";
   fs::create_directories(dir);
   fs::remove(dir / name);
   return dir / name;

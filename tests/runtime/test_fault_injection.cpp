@@ -8,6 +8,7 @@
 
 #include "core/error.h"
 #include "runtime/fault_injection.h"
+#include "scratch_dir.h"
 
 using namespace tether;
 using namespace tether::runtime;
@@ -42,7 +43,7 @@ TEST(FaultInjection, LatencyDelaysEveryCall) {
 }
 
 TEST(FaultInjection, FailureFileBreaksAndHealsARunningPredict) {
-  const auto file = std::filesystem::temp_directory_path() / ("tether_inject_" + std::to_string(::getpid()));
+  const auto file = tether::testing::scratch_dir() / "inject";
   std::filesystem::remove(file);
   int calls = 0;
   auto predict = with_injected_faults(counting(calls), 0, file.string());

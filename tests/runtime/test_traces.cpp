@@ -13,6 +13,7 @@
 #include "core/hash.h"
 #include "runtime/trace_reader.h"
 #include "runtime/trace_recorder.h"
+#include "scratch_dir.h"
 
 using namespace tether;
 using namespace tether::runtime;
@@ -25,8 +26,7 @@ struct TempDir {
   fs::path path;
   TempDir() {
     const auto* info = ::testing::UnitTest::GetInstance()->current_test_info();
-    path = fs::temp_directory_path() /
-           ("tether_traces_" + std::to_string(::getpid()) + "_" + info->test_suite_name() + "_" + info->name());
+    path = tether::testing::scratch_dir() / (std::string("traces_") + info->test_suite_name() + "_" + info->name());
     fs::remove_all(path);
   }
   ~TempDir() { fs::remove_all(path); }

@@ -11,6 +11,7 @@
 
 #include "core/error.h"
 #include "runtime/wedges.h"
+#include "scratch_dir.h"
 
 using namespace tether;
 using namespace tether::runtime;
@@ -45,7 +46,7 @@ policy::Embodiment two_joint_arm() {
 }
 
 std::string temp_path(const std::string& name) {
-  return (fs::temp_directory_path() / ("tether_wedges_" + std::to_string(::getpid()) + "_" + name)).string();
+  return (tether::testing::scratch_dir() / ("wedges_" + name)).string();
 }
 
 policy::Observation observation(float state0, uint8_t pixel) {

@@ -10,6 +10,7 @@
 #include "serve/act_pipeline.h"
 #include "serve/base64.h"
 #include "trace_lines.h"
+#include "scratch_dir.h"
 
 using namespace tether;
 using namespace tether::serve;
@@ -164,7 +165,7 @@ TEST(ActPipeline, AForwardedRequestIsNeverForwardedAgain) {
 }
 
 TEST(ActPipeline, RecordsATraceLineForSuccessAndFailure) {
-  const auto dir = std::filesystem::temp_directory_path() / ("tether_pipeline_trace_" + std::to_string(::getpid()));
+  const auto dir = tether::testing::scratch_dir() / "pipeline_trace";
   std::filesystem::remove_all(dir);
   ServerOptions o;
   runtime::TraceOptions t;

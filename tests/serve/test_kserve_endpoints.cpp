@@ -15,6 +15,7 @@
 #include "runtime/trace_reader.h"
 #include "serve/server.h"
 #include "trace_lines.h"
+#include "scratch_dir.h"
 
 using namespace tether;
 using namespace tether::serve;
@@ -215,7 +216,7 @@ TEST(ServerKServeEndpoints, ErrorsInTheProtocolsForm) {
 }
 
 TEST(ServerKServeEndpoints, RequestsRefusedWhileDecodingLeaveATraceLine) {
-  const auto dir = std::filesystem::temp_directory_path() / ("tether_kserve_trace_" + std::to_string(::getpid()));
+  const auto dir = tether::testing::scratch_dir() / "kserve_trace";
   std::filesystem::remove_all(dir);
   ServerOptions o;
   o.model_name = "demo";

@@ -18,6 +18,7 @@
 #include "http_test_client.h"
 #include "serve/base64.h"
 #include "serve_process.h"
+#include "scratch_dir.h"
 
 using namespace tether;
 using namespace tether::serve::testing;
@@ -84,7 +85,7 @@ std::string error_code(const HttpReply& r) {
 struct Scratch {
   fs::path path;
   explicit Scratch(const std::string& name)
-      : path(fs::temp_directory_path() / ("tether_pi0_serve_" + std::to_string(::getpid()) + "_" + name)) {
+      : path(tether::testing::scratch_dir() / ("pi0_serve_" + name)) {
     fs::remove_all(path);
     fs::create_directories(path);
   }
@@ -98,7 +99,7 @@ struct Exit {
   std::string out, err;
 };
 Exit run_to_exit(const std::string& prefix, const std::string& args) {
-  const fs::path err_file = fs::temp_directory_path() / ("tether_pi0_serve_err_" + std::to_string(::getpid()));
+  const fs::path err_file = tether::testing::scratch_dir() / "pi0_serve_err";
   Exit r;
   FILE* pipe = popen((prefix + " timeout 120 " + TETHER_BINARY + " " + args + " 2>" + err_file.string()).c_str(), "r");
   char buf[4096];

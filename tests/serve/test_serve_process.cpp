@@ -17,6 +17,7 @@
 #include "http_test_client.h"
 #include "serve_process.h"
 #include "serve/base64.h"
+#include "scratch_dir.h"
 
 using namespace tether;
 using namespace tether::serve::testing;
@@ -116,7 +117,7 @@ CliRun run_tether(const std::string& args) {
 }
 
 std::filesystem::path temp_dir(const std::string& name) {
-  const auto dir = std::filesystem::temp_directory_path() / ("tether_go_" + std::to_string(::getpid())) / name;
+  const auto dir = tether::testing::scratch_dir() / "go" / name;
   std::filesystem::remove_all(dir);
   std::filesystem::create_directories(dir);
   return dir;

@@ -16,6 +16,7 @@
 #include "serve/msgpack.h"
 #include "serve/server.h"
 #include "trace_lines.h"
+#include "scratch_dir.h"
 
 using namespace tether;
 using namespace tether::serve;
@@ -447,7 +448,7 @@ TEST(Server, ConcurrentKeepAliveClientsNeverStall) {
 }
 
 TEST(Server, ActTakesMsgpackBodiesAndAnswersInTheFormatAccepted) {
-  const auto dir = std::filesystem::temp_directory_path() / ("tether_msgpack_trace_" + std::to_string(::getpid()));
+  const auto dir = tether::testing::scratch_dir() / "msgpack_trace";
   std::filesystem::remove_all(dir);
   FakeEngine engine;
   ServerOptions o;

@@ -14,6 +14,7 @@
 #include "text/pipeline.h"
 #include "text/sentencepiece_model.h"
 #include "text/tokenizer.h"
+#include "scratch_dir.h"
 
 namespace fs = std::filesystem;
 using tether::Error;
@@ -46,7 +47,7 @@ std::string ids_str(const std::vector<int32_t>& ids) {
 struct TempDir {
   fs::path path;
   explicit TempDir(const std::string& name)
-      : path(fs::temp_directory_path() / ("tether_pg_" + name)) {
+      : path(tether::testing::scratch_dir() / ("pg_" + name)) {
     fs::remove_all(path);
     fs::create_directories(path);
   }

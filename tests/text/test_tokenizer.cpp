@@ -17,6 +17,7 @@
 #include "text/onig_regex.h"
 #include "text/tokenizer.h"
 #include "text/unicode.h"
+#include "scratch_dir.h"
 
 namespace fs = std::filesystem;
 using tether::Error;
@@ -227,7 +228,7 @@ TEST(Tokenizer, PretrainedDirFollowsTransformers) {
   const Tokenizer raw = Tokenizer::from_file((kDir / "smollm_gpt2cls" / "tokenizer.json").string());
   EXPECT_NE(p.tokenizer.encode(" 2024 12345"), raw.encode(" 2024 12345"));
 
-  const fs::path bad = fs::temp_directory_path() / "tether_tok_cls";
+  const fs::path bad = tether::testing::scratch_dir() / "tok_cls";
   fs::create_directories(bad);
   fs::copy_file(kDir / "smollm" / "tokenizer.json", bad / "tokenizer.json",
                 fs::copy_options::overwrite_existing);
@@ -349,7 +350,7 @@ TEST(TokenizerErrors, MissingFile) {
 }
 
 TEST(TokenizerErrors, MalformedJson) {
-  const fs::path path = fs::temp_directory_path() / "tether_bad_tokenizer.json";
+  const fs::path path = tether::testing::scratch_dir() / "bad_tokenizer.json";
   std::ofstream(path) << "{\"version\": \"1.0\", \"model\": {";
   try {
     Tokenizer::from_file(path.string());
