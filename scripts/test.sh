@@ -3,7 +3,9 @@
 # integration tests (CTest), then the Python client's unit tests and the real-HTTP integration tests of
 # `tether serve` (pytest, in .venv). Under CI (CI=true) the build treats warnings as errors.
 # The unit and parity labels then run a second time with every dispatch capped at AVX2 (Tether's own
-# TETHER_MAX_CPU_ISA and oneDNN's ONEDNN_MAX_CPU_ISA), so the AVX2 path is checked whatever CPU this is.
+# TETHER_MAX_CPU_ISA and oneDNN's ONEDNN_MAX_CPU_ISA), so the AVX2 path is checked whatever CPU this is, and,
+# on a CPU with bf16 instructions that Tether measured too slow to use, with TETHER_BF16_GEMM=native, so the native
+# bf16 path that such CPUs skip stays checked wherever it can run.
 # Slow suites (full-size benchmarks, fixture regeneration, sanitizers, fuzzing, the fresh-machine and arm64
 # checks) have their own commands.
 set -euo pipefail
@@ -18,4 +20,9 @@ if [ "$(uname -m)" = x86_64 ]; then
   echo "== unit and parity tests again, dispatch capped at AVX2 (TETHER_MAX_CPU_ISA=AVX2 ONEDNN_MAX_CPU_ISA=AVX2)"
   TETHER_MAX_CPU_ISA=AVX2 ONEDNN_MAX_CPU_ISA=AVX2 ctest --preset "$preset" -j"$(nproc)" -L 'unit|parity' \
     --label-exclude slow "$@"
+  doctor=$(build/"$preset"/tether doctor 2>/dev/null || true)
+  if grep -q "bf16 dot product .* bf16 weights widened" <<<"$doctor"; then
+    echo "== unit and parity tests again, native bf16 forced (TETHER_BF16_GEMM=native)"
+    TETHER_BF16_GEMM=native ctest --preset "$preset" -j"$(nproc)" -L 'unit|parity' --label-exclude slow "$@"
+  fi
 fi

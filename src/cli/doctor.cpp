@@ -85,8 +85,11 @@ void cpu_checks(std::vector<Check>& out) {
                  "Tether's CPU kernels need an x86-64-v3 processor (AVX2, FMA) or newer"});
   out.push_back({"cpu", "AVX-512", avx512 ? Status::ok : Status::warn, avx512 ? "present (used by oneDNN and the kernels)" : "absent",
                  "fine; AVX-512 processors run the float32 GEMMs about 2x faster"});
-  out.push_back({"cpu", "AVX-512 BF16", avx512_bf16 ? Status::ok : Status::skip,
-                 avx512_bf16 ? "present (bf16 GEMMs)" : "absent", ""});
+  // Present is not the same as used: bf16 GEMMs run natively only where they beat fp32 (cpu_features.h).
+  const std::string bf16_use = cpu::cpu_paths().native_bf16 ? "present (native bf16 GEMMs)"
+                                                            : "present, not used: " + cpu::bf16_widened_reason();
+  out.push_back({"cpu", "AVX-512 BF16", avx512_bf16 ? Status::ok : Status::skip, avx512_bf16 ? bf16_use : "absent",
+                 ""});
   out.push_back({"cpu", "AMX", amx_tile && amx_bf16 ? Status::ok : Status::skip,
                  amx_tile && amx_bf16 ? "present (AMX-BF16 tiles)" : "absent", ""});
 #if defined(__AVX512F__)

@@ -125,6 +125,7 @@ MachineProbe probe_machine() {
   m.memory_total = meminfo_bytes("MemTotal");
   m.memory_available = meminfo_bytes("MemAvailable");
   m.native_bf16 = cpu::cpu_paths().native_bf16;
+  m.bf16_widened_reason = cpu::bf16_widened_reason();
   m.isa = cpu::isa_name(cpu::cpu_paths().effective);
   m.gpu = probe_gpus();
   return m;
@@ -170,7 +171,7 @@ PrecisionChoice choose_precision(const MachineProbe& m, const std::string& model
     return {"bf16", "precision bf16: this CPU (" + m.isa +
                         ") runs bf16 GEMMs natively, faster than fp32; its error against fp32 is in the export's "
                         "VERIFICATION.md (--precision fp32 for the reference)"};
-  const std::string slow = "bf16 would be no faster on this CPU (" + m.isa + ", no bf16 instructions)";
+  const std::string slow = "bf16 would be no faster here (" + m.isa + ": " + m.bf16_widened_reason + ")";
   if (!parameters) return {"fp32", "precision fp32 (the reference): " + model_id + " has no parameter count, memory not checked"};
   if (m.memory_available <= 0) return {"fp32", "precision fp32 (the reference): available memory unknown"};
   const double need = memory_needed_bytes(*parameters, "fp32");

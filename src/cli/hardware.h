@@ -39,6 +39,7 @@ struct MachineProbe {
   // bf16 GEMMs run on the CPU's bf16 instructions (cpu::cpu_paths(), under TETHER_MAX_CPU_ISA); without them bf16
   // weights are widened to fp32 in the kernel: half the memory, no faster than fp32.
   bool native_bf16 = false;
+  std::string bf16_widened_reason = "this CPU has no bf16 instructions";  // why not native (cpu::bf16_widened_reason())
   std::string isa;  // the dispatch level, e.g. "avx2", "avx512_bf16"
   GpuProbe gpu;
 };

@@ -97,7 +97,15 @@ TEST(PackedLinear, PathFollowsTheCpu) {
   EXPECT_EQ(linear_path(Precision::fp16), LinearPath::panel_f16);
   if (cpu_paths().effective < CpuIsa::avx512_bf16) {
     EXPECT_FALSE(cpu_paths().native_bf16);
+    EXPECT_EQ(cpu_paths().bf16_dot_speed, 0.0);  // nothing to measure
   }
+  // With AVX512-BF16 and no AMX the choice follows the measured speed of the bf16 dot product (unless overridden).
+  if (cpu_paths().bf16_dot_speed > 0) {
+    EXPECT_EQ(cpu_paths().effective, CpuIsa::avx512_bf16);
+    EXPECT_EQ(cpu_paths().native_bf16, cpu_paths().bf16_dot_speed >= kMinNativeBf16Speed);
+    EXPECT_LT(cpu_paths().bf16_dot_speed, 8.0);  // a real ratio, not a timer glitch
+  }
+  EXPECT_EQ(bf16_widened_reason().empty(), cpu_paths().native_bf16);
   EXPECT_EQ(parse_precision("fp16"), Precision::fp16);
   EXPECT_THROW(parse_precision("int3"), std::exception);
 }

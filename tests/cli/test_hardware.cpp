@@ -72,7 +72,7 @@ TEST(HardwareProbe, PrecisionIsFp32UnlessAskedOrTooBig) {
   PrecisionChoice c = choose_precision(m, "tiny", int64_t(1'000'000), "");
   EXPECT_EQ(c.precision, "fp32");
   EXPECT_EQ(c.reason, "precision fp32 (the reference): tiny needs about 5.0 MB, 16.0 GB available; bf16 would be "
-                      "no faster on this CPU (avx2, no bf16 instructions)");
+                      "no faster here (avx2: this CPU has no bf16 instructions)");
   // 3.3B parameters need ~16.5 GB in fp32: more than 80% of 16 GB.
   c = choose_precision(m, "pi0", int64_t(3'300'000'000), "");
   EXPECT_EQ(c.precision, "bf16");

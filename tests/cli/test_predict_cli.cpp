@@ -98,6 +98,31 @@ TEST(PredictCli, SameBitsOnEveryDispatchLevel) {
   EXPECT_NE(bad.err.find("TETHER_MAX_CPU_ISA='AVX9' is not one of"), std::string::npos) << bad.err;
 }
 
+TEST(PredictCli, Bf16GemmOverrideWidensOnEveryCpuAndRefusesBadValues) {
+  // TETHER_BF16_GEMM=widened puts bf16 on the widened panel path whatever the CPU has, so it gives the bits of the
+  // AVX2-capped run (which has no bf16 instructions); native is refused where there are no bf16 instructions.
+  const std::string args = "predict " + kGood + " --seed 5 --json --precision bf16";
+  ::setenv("TETHER_MAX_CPU_ISA", kLowerIsaCaps[0], 1);
+  const CliRun capped = run_tether(args);
+  ::setenv("TETHER_BF16_GEMM", "native", 1);
+  const CliRun native_without_bf16 = run_tether(args);
+  ::unsetenv("TETHER_MAX_CPU_ISA");
+  ::setenv("TETHER_BF16_GEMM", "widened", 1);
+  const CliRun widened = run_tether(args);
+  ::setenv("TETHER_BF16_GEMM", "fastest", 1);
+  const CliRun bad = run_tether(args);
+  ::unsetenv("TETHER_BF16_GEMM");
+  ASSERT_EQ(capped.code, 0) << capped.err;
+  ASSERT_EQ(widened.code, 0) << widened.err;
+  EXPECT_EQ(Json::parse(widened.out)["inference_mode"], "cpu-bf16-weights");
+  EXPECT_EQ(Json::parse(widened.out)["actions"], Json::parse(capped.out)["actions"]);
+  EXPECT_EQ(native_without_bf16.code, 2);
+  EXPECT_NE(native_without_bf16.err.find("TETHER_BF16_GEMM=native, but this CPU runs oneDNN at"), std::string::npos)
+      << native_without_bf16.err;
+  EXPECT_EQ(bad.code, 2);
+  EXPECT_NE(bad.err.find("TETHER_BF16_GEMM='fastest' is not one of native, widened"), std::string::npos) << bad.err;
+}
+
 TEST(PredictCli, ExplicitNoiseFile) {
   const fs::path noise = tether::testing::scratch_dir() / "noise.safetensors";
   std::vector<float> zeros(50 * 32, 0.0f);

@@ -5,7 +5,13 @@
 
 #include <algorithm>
 #include <cctype>
+#include <chrono>
+#include <cstdio>
 #include <cstdlib>
+
+#if defined(__x86_64__)
+#include <immintrin.h>
+#endif
 
 #include "core/error.h"
 
@@ -52,6 +58,72 @@ CpuIsa parse_cap(const std::string& value, CpuIsa detected) {
 }
 
 #if defined(__x86_64__)
+// Times `steps` rounds of 16 independent chains (enough to cover either instruction's latency) of FMA or of
+// VDPBF16PS on registers, so only the issue rate counts. The empty asm keeps the chains from being folded or hoisted.
+constexpr int kProbeSteps = 8192;
+
+__attribute__((target("avx512f"))) double time_fp32_fma(float seed) {
+  __m512 acc[16];
+  const __m512 a = _mm512_set1_ps(seed), b = _mm512_set1_ps(0.5f);
+#pragma GCC unroll 16
+  for (int i = 0; i < 16; ++i) acc[i] = _mm512_set1_ps(float(i));
+  const auto t0 = std::chrono::steady_clock::now();
+  for (int s = 0; s < kProbeSteps; ++s) {
+#pragma GCC unroll 16
+    for (int i = 0; i < 16; ++i) {
+      acc[i] = _mm512_fmadd_ps(acc[i], a, b);
+      __asm__ volatile("" : "+v"(acc[i]));
+    }
+  }
+  const double t = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+  __m512 sum = acc[0];
+#pragma GCC unroll 16
+  for (int i = 1; i < 16; ++i) sum = _mm512_add_ps(sum, acc[i]);
+  alignas(64) float lanes[16];
+  _mm512_store_ps(lanes, sum);
+  volatile float sink = lanes[0];
+  (void)sink;
+  return t;
+}
+
+__attribute__((target("avx512f,avx512bf16"))) double time_bf16_dot(float seed) {
+  __m512 acc[16];
+  const __m512bh a = _mm512_cvtne2ps_pbh(_mm512_set1_ps(seed), _mm512_set1_ps(seed));
+#pragma GCC unroll 16
+  for (int i = 0; i < 16; ++i) acc[i] = _mm512_set1_ps(float(i));
+  const auto t0 = std::chrono::steady_clock::now();
+  for (int s = 0; s < kProbeSteps; ++s) {
+#pragma GCC unroll 16
+    for (int i = 0; i < 16; ++i) {
+      acc[i] = _mm512_dpbf16_ps(acc[i], a, a);
+      __asm__ volatile("" : "+v"(acc[i]));
+    }
+  }
+  const double t = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+  __m512 sum = acc[0];
+#pragma GCC unroll 16
+  for (int i = 1; i < 16; ++i) sum = _mm512_add_ps(sum, acc[i]);
+  alignas(64) float lanes[16];
+  _mm512_store_ps(lanes, sum);
+  volatile float sink = lanes[0];
+  (void)sink;
+  return t;
+}
+
+// The bf16 dot product's flop rate over fp32 FMA's: VDPBF16PS does 32 multiply-adds per instruction, FMA 16. Whether
+// a CPU issues VDPBF16PS as fast as FMA is a property of its microarchitecture that no feature flag reports, so it is
+// measured (about 3 ms, once per process); the best of nine interleaved rounds of each, after a warm-up, keeps a busy
+// machine's hiccups out.
+double measure_bf16_dot_speed() {
+  time_fp32_fma(0.25f), time_bf16_dot(0.25f);
+  double fma = 1e30, dot = 1e30;
+  for (int round = 0; round < 9; ++round) {
+    fma = std::min(fma, time_fp32_fma(0.25f));
+    dot = std::min(dot, time_bf16_dot(0.25f));
+  }
+  return 2.0 * fma / dot;
+}
+
 const char* onednn_isa_name(dnnl::cpu_isa isa) {
   switch (isa) {
     case dnnl::cpu_isa::sse41: return "sse41";
@@ -93,8 +165,25 @@ CpuPaths decide() {
   p.onednn_isa = "aarch64";
 #endif
   // Native only where the CPU has bf16 instructions: oneDNN 2.6 also emulates bf16 on plain AVX-512, slower than
-  // widening the weights to float32, and refuses bf16 below AVX-512.
-  p.native_bf16 = p.effective >= CpuIsa::avx512_bf16 && p.native_bf16_onednn;
+  // widening the weights to float32, and refuses bf16 below AVX-512. And only where they are faster than fp32: AMX
+  // tiles are; VDPBF16PS alone is measured.
+  const bool has_bf16 = p.effective >= CpuIsa::avx512_bf16 && p.native_bf16_onednn;
+  if (const char* bf16 = std::getenv("TETHER_BF16_GEMM"); bf16 && *bf16) {
+    p.bf16_gemm = lower(bf16);
+    if (p.bf16_gemm != "native" && p.bf16_gemm != "widened")
+      throw Error(ErrorCode::invalid_argument, "TETHER_BF16_GEMM='" + std::string(bf16) + "' is not one of native, widened");
+    if (p.bf16_gemm == "native" && !has_bf16)
+      throw Error(ErrorCode::invalid_argument, "TETHER_BF16_GEMM=native, but this CPU runs oneDNN at " + p.onednn_isa +
+                                                   " (" + isa_name(p.effective) + "), without bf16 instructions");
+    p.native_bf16 = p.bf16_gemm == "native";
+  } else if (has_bf16 && p.effective == CpuIsa::amx) {
+    p.native_bf16 = true;
+  } else if (has_bf16) {
+#if defined(__x86_64__)
+    p.bf16_dot_speed = measure_bf16_dot_speed();
+#endif
+    p.native_bf16 = p.bf16_dot_speed >= kMinNativeBf16Speed;
+  }
   if (const char* gemm = std::getenv("TETHER_FP32_GEMM"); gemm && *gemm) {
     const std::string g = lower(gemm);
     if (g != "panel" && g != "onednn")
@@ -122,11 +211,35 @@ const char* isa_name(CpuIsa isa) {
   return "?";
 }
 
+std::string bf16_widened_reason() {
+  const CpuPaths& p = cpu_paths();
+  if (p.native_bf16) return "";
+  if (p.effective < CpuIsa::avx512_bf16)
+    return p.detected >= CpuIsa::avx512_bf16 ? "this CPU's bf16 instructions are capped by TETHER_MAX_CPU_ISA=" + p.cap
+                                             : "this CPU has no bf16 instructions";
+  if (!p.native_bf16_onednn) return "this CPU has bf16 instructions, but oneDNN runs at " + p.onednn_isa;
+  if (p.bf16_gemm == "widened") return "TETHER_BF16_GEMM=widened";
+  char speed[160];
+  std::snprintf(speed, sizeof speed,
+                "this CPU's bf16 dot product measured %.2fx the fp32 FMA's flop rate, below the %.1fx native bf16 needs",
+                p.bf16_dot_speed, kMinNativeBf16Speed);
+  return speed;
+}
+
 std::string cpu_paths_summary() {
   const CpuPaths& p = cpu_paths();
   std::string s = std::string(isa_name(p.effective)) + " (detected " + isa_name(p.detected);
   if (!p.cap.empty()) s += ", capped by TETHER_MAX_CPU_ISA=" + p.cap;
-  return s + "; oneDNN " + p.onednn_isa + ")";
+  s += "; oneDNN " + p.onednn_isa;
+  if (p.bf16_dot_speed > 0) {
+    char speed[96];
+    std::snprintf(speed, sizeof speed, "; bf16 dot product %.2fx fp32 FMA: bf16 %s", p.bf16_dot_speed,
+                  p.native_bf16 ? "native" : "weights widened");
+    s += speed;
+  } else if (!p.bf16_gemm.empty()) {
+    s += "; TETHER_BF16_GEMM=" + p.bf16_gemm;
+  }
+  return s + ")";
 }
 
 }  // namespace tether::cpu

@@ -84,9 +84,7 @@ std::string compute_mode_description(Precision precision) {
     case LinearPath::onednn_bf16:
       return "native bf16 GEMM (oneDNN " + c.onednn_isa + "): bf16 weights and inputs, fp32 accumulation";
     case LinearPath::panel_bf16:
-      return "bf16 weights widened to fp32 in the kernel (" + kernel + "): this CPU " +
-             (c.effective >= CpuIsa::avx512_bf16 ? "has bf16 instructions, but oneDNN runs at " + c.onednn_isa
-                                                 : std::string("has no bf16 instructions")) +
+      return "bf16 weights widened to fp32 in the kernel (" + kernel + "): " + bf16_widened_reason() +
              "; inputs and accumulation in fp32";
     case LinearPath::panel_f16:
       return "fp16 weights widened to fp32 in the kernel (" + kernel + "); inputs and accumulation in fp32";
