@@ -58,44 +58,31 @@ CpuIsa parse_cap(const std::string& value, CpuIsa detected) {
 }
 
 #if defined(__x86_64__)
-// Times `steps` rounds of 16 independent chains (enough to cover either instruction's latency) of FMA or of
-// VDPBF16PS on registers, so only the issue rate counts. The empty asm keeps the chains from being folded or hoisted.
-constexpr int kProbeSteps = 8192;
-
-__attribute__((target("avx512f"))) double time_fp32_fma(float seed) {
-  __m512 acc[16];
-  const __m512 a = _mm512_set1_ps(seed), b = _mm512_set1_ps(0.5f);
-#pragma GCC unroll 16
-  for (int i = 0; i < 16; ++i) acc[i] = _mm512_set1_ps(float(i));
-  const auto t0 = std::chrono::steady_clock::now();
-  for (int s = 0; s < kProbeSteps; ++s) {
-#pragma GCC unroll 16
-    for (int i = 0; i < 16; ++i) {
-      acc[i] = _mm512_fmadd_ps(acc[i], a, b);
-      __asm__ volatile("" : "+v"(acc[i]));
-    }
+// The two instructions the probe races, one step of one accumulator chain each.
+struct Fp32Fma {
+  __attribute__((target("avx512f"))) static __m512 step(__m512 acc) {
+    return _mm512_fmadd_ps(acc, _mm512_set1_ps(0.25f), _mm512_set1_ps(0.5f));
   }
-  const double t = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
-  __m512 sum = acc[0];
-#pragma GCC unroll 16
-  for (int i = 1; i < 16; ++i) sum = _mm512_add_ps(sum, acc[i]);
-  alignas(64) float lanes[16];
-  _mm512_store_ps(lanes, sum);
-  volatile float sink = lanes[0];
-  (void)sink;
-  return t;
-}
+};
+struct Bf16Dot {
+  __attribute__((target("avx512f,avx512bf16"))) static __m512 step(__m512 acc) {
+    const __m512bh a = _mm512_cvtne2ps_pbh(_mm512_set1_ps(0.25f), _mm512_set1_ps(0.25f));
+    return _mm512_dpbf16_ps(acc, a, a);
+  }
+};
 
-__attribute__((target("avx512f,avx512bf16"))) double time_bf16_dot(float seed) {
+// Seconds for 8192 rounds of 16 independent chains of `Op` (enough chains to cover either instruction's latency), on
+// registers, so only the issue rate counts. The empty asm keeps the chains from being folded or hoisted.
+template <class Op>
+__attribute__((target("avx512f,avx512bf16"))) double time_chains() {
   __m512 acc[16];
-  const __m512bh a = _mm512_cvtne2ps_pbh(_mm512_set1_ps(seed), _mm512_set1_ps(seed));
 #pragma GCC unroll 16
   for (int i = 0; i < 16; ++i) acc[i] = _mm512_set1_ps(float(i));
   const auto t0 = std::chrono::steady_clock::now();
-  for (int s = 0; s < kProbeSteps; ++s) {
+  for (int s = 0; s < 8192; ++s) {
 #pragma GCC unroll 16
     for (int i = 0; i < 16; ++i) {
-      acc[i] = _mm512_dpbf16_ps(acc[i], a, a);
+      acc[i] = Op::step(acc[i]);
       __asm__ volatile("" : "+v"(acc[i]));
     }
   }
@@ -115,11 +102,11 @@ __attribute__((target("avx512f,avx512bf16"))) double time_bf16_dot(float seed) {
 // measured (about 3 ms, once per process); the best of nine interleaved rounds of each, after a warm-up, keeps a busy
 // machine's hiccups out.
 double measure_bf16_dot_speed() {
-  time_fp32_fma(0.25f), time_bf16_dot(0.25f);
+  time_chains<Fp32Fma>(), time_chains<Bf16Dot>();
   double fma = 1e30, dot = 1e30;
   for (int round = 0; round < 9; ++round) {
-    fma = std::min(fma, time_fp32_fma(0.25f));
-    dot = std::min(dot, time_bf16_dot(0.25f));
+    fma = std::min(fma, time_chains<Fp32Fma>());
+    dot = std::min(dot, time_chains<Bf16Dot>());
   }
   return 2.0 * fma / dot;
 }
