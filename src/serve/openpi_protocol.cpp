@@ -496,7 +496,7 @@ std::string encode_float32_array(const std::vector<float>& values, const std::ve
   return w.take();
 }
 
-std::string encode_reply(const Json& act_body, const ServerTiming& timing, const std::vector<std::string>& model_stages) {
+std::string encode_reply(const Json& act_body, const ServerTiming& timing) {
   const Json& rows = act_body.at("actions");
   const int64_t dim = act_body.value("action_dim", rows.empty() ? int64_t(0) : int64_t(rows.front().size()));
   std::vector<float> values;
@@ -505,10 +505,11 @@ std::string encode_reply(const Json& act_body, const ServerTiming& timing, const
     if (int64_t(row.size()) != dim) throw Error(ErrorCode::internal, "openpi: ragged actions in an /act answer");
     for (const auto& x : row) values.push_back(x.is_number() ? x.get<float>() : std::numeric_limits<float>::quiet_NaN());
   }
+  // The forward pass, as openpi's policy_timing times its model; absent (0) when no forward pass ran (a skip, a
+  // fallback, a deadline answer).
   double policy_ms = 0;
   if (const auto latency = act_body.find("latency_ms"); latency != act_body.end() && latency->is_object())
-    for (const auto& stage : model_stages)
-      if (const auto s = latency->find(stage); s != latency->end() && s->is_number()) policy_ms += s->get<double>();
+    if (const auto p = latency->find("predict"); p != latency->end() && p->is_number()) policy_ms = p->get<double>();
   Json rest = Json::object();
   for (auto it = act_body.begin(); it != act_body.end(); ++it)
     if (it.key() != "actions") rest[it.key()] = it.value();

@@ -68,8 +68,8 @@ struct ServerTiming {
 
 // The reply to a successful /act answer `act_body`: {"actions": float32 [rows, dim] ndarray, "policy_timing":
 // {"infer_ms"}, "server_timing": {...}, "tether": the rest of the answer (request_id, latency_ms, wedge fields)}.
-// policy_timing.infer_ms is the sum of the model's stages (`model_stages`) in latency_ms.
-std::string encode_reply(const Json& act_body, const ServerTiming& timing, const std::vector<std::string>& model_stages);
+// policy_timing.infer_ms is the forward pass (latency_ms.predict), 0 when none ran.
+std::string encode_reply(const Json& act_body, const ServerTiming& timing);
 
 // JSON as msgpack (objects as maps with string keys), for the metadata frame.
 std::string encode_json(const Json& value);

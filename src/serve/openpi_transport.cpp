@@ -233,7 +233,6 @@ net::awaitable<void> websocket_session(std::shared_ptr<Shared> s, std::shared_pt
   if (!co_await write_frame(ws, meta, false, opts.write_timeout_ms)) co_return;
 
   const std::size_t limit = s->max_frame_bytes();
-  const auto& spec = s->ctx.host.engine().spec;
   std::optional<double> prev_total_ms;
   beast::flat_buffer frame;
   for (;;) {
@@ -301,7 +300,7 @@ net::awaitable<void> websocket_session(std::shared_ptr<Shared> s, std::shared_pt
       co_await fail_connection(ws, *conn, text, websocket::close_code::internal_error, reason, opts);
       co_return;
     }
-    const std::string reply = openpi::encode_reply(answer.body, {infer_ms, prev_total_ms}, spec.stages);
+    const std::string reply = openpi::encode_reply(answer.body, {infer_ms, prev_total_ms});
     if (!co_await write_frame(ws, reply, false, opts.write_timeout_ms)) co_return;
     prev_total_ms = ms_between(wait_start, Clock::now());
   }
