@@ -28,8 +28,8 @@ struct CpuPaths {
 
 // Native bf16 must do at least this many times fp32's flops per second in the dot product itself: below it, the
 // conversion of every input to bf16 eats the gain, and widening bf16 weights in the fp32 kernel is as fast and exact
-// in its products. AMD Zen 4/5 measure about 2; Intel Xeons without AMX about 0.5 (VDPBF16PS issues at a quarter of
-// the FMA rate there).
+// in its products. An Emerald Rapids VM without AMX measured 0.50 (VDPBF16PS issues at a quarter of the FMA rate
+// there); on Zen 5, oneDNN's bf16 GEMM ran at twice its f32 rate (bench/GEMM.md), so its ratio should be near 2.
 constexpr double kMinNativeBf16Speed = 1.3;
 
 // Decided on first use: parses TETHER_MAX_CPU_ISA (AVX2, AVX512_CORE, AVX512_CORE_BF16, AVX512_CORE_AMX, ALL,
