@@ -110,6 +110,6 @@ rm -rf "$venv"
 mkdir -p "$(dirname "$venv")"
 "$py" -m venv "$venv"
 "$venv/bin/python" -m pip install -q -r "$req"
-"$venv/bin/python" -c 'import lerobot.policies.smolvla.modeling_smolvla, lerobot.policies.pi0.modeling_pi0, lerobot.policies.pi05.modeling_pi05, transformers, torch, scipy, sentencepiece'
+"$venv/bin/python" -c 'import lerobot.policies.smolvla.modeling_smolvla, lerobot.policies.pi0.modeling_pi0, lerobot.policies.pi05.modeling_pi05, lerobot.policies.groot.groot_n1_7, transformers, torch, scipy, sentencepiece, diffusers, tree'
 echo "$want" >"$stamp"
 log "ready: $venv"
