@@ -8,7 +8,15 @@ namespace tether::backend {
 
 const char* device_name(Device d) { return d == Device::cpu ? "cpu" : "cuda"; }
 
-const char* activation_name(Activation a) { return a == Activation::silu ? "silu" : "gelu_tanh"; }
+const char* activation_name(Activation a) {
+  switch (a) {
+    case Activation::silu: return "silu";
+    case Activation::gelu_tanh: return "gelu_tanh";
+    case Activation::gelu_erf: return "gelu_erf";
+    case Activation::relu: return "relu";
+  }
+  return "?";
+}
 
 namespace {
 struct Entry {

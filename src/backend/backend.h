@@ -67,7 +67,8 @@ class Table {
   virtual int64_t width() const = 0;
 };
 
-enum class Activation { silu, gelu_tanh };
+// silu: x * sigmoid(x); gelu_tanh: GELU's tanh approximation; gelu_erf: the exact (erf) GELU; relu: max(x, 0).
+enum class Activation { silu, gelu_tanh, gelu_erf, relu };
 const char* activation_name(Activation a);
 
 // RMSNorm flavours: Llama's x * rsqrt(mean(x^2) + eps) * w; Gemma's ... * (1 + w).
@@ -127,6 +128,10 @@ class Backend {
   virtual void rms_norm_modulated(Ptr<const float> x, int64_t rows, int64_t n, Ptr<const float> scale,
                                   Ptr<const float> shift, int64_t mod_stride, int64_t rows_per_group, float eps,
                                   Ptr<float> y) = 0;
+  // In place over rows of n: y = y * (1 + scale) + shift, the scale and shift rows (stride mod_stride) of group
+  // r / rows_per_group (an adaptive LayerNorm's modulation after a LayerNorm without affine).
+  virtual void modulate(Ptr<float> y, int64_t rows, int64_t n, Ptr<const float> scale, Ptr<const float> shift,
+                        int64_t mod_stride, int64_t rows_per_group) = 0;
   // Masked grouped-query attention (see cpu/kernels.h `attention` for the layout and the masking rule).
   virtual void attention(Ptr<const float> q, int64_t q_stride, Ptr<const float> k, Ptr<const float> v,
                          int64_t kv_stride, Ptr<const uint8_t> mask, int64_t batch, int64_t len_q, int64_t len_k,
@@ -135,6 +140,11 @@ class Backend {
   virtual void rope(Ptr<float> x, int64_t batch, int64_t len, int64_t heads, int64_t head_dim,
                     Ptr<const int64_t> positions, float max_wavelength,
                     RopeAngles angles = RopeAngles::timescale_division) = 0;
+  // Rotary embedding in place from precomputed angles: x[rows, heads, head_dim] (split halves), cos and sin
+  // [rows, head_dim / 2]; x1' = x1 cos - x2 sin, x2' = x2 cos + x1 sin. For position schemes the model computes
+  // itself (Qwen3-VL's interleaved multimodal RoPE and its vision tower's 2-D rotary).
+  virtual void rope_rotate(Ptr<float> x, int64_t rows, int64_t heads, int64_t head_dim, Ptr<const float> cos,
+                           Ptr<const float> sin) = 0;
   virtual void activate(Ptr<float> x, int64_t n, Activation act) = 0;
   // Gated linear unit over rows of [gate | up] (width 2 * n): out[r] = act(gate) * up; out is [rows, n].
   virtual void gated(Ptr<const float> gate_up, int64_t rows, int64_t n, Activation act, Ptr<float> out) = 0;

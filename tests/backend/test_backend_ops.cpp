@@ -158,6 +158,15 @@ TEST_P(BackendOps, Norms) {
       for (int64_t i = 0; i < n; ++i)
         want[r * n + i] = x[r * n + i] * rms[r] * (1.0 + mod[(r / 4) * 3 * n + i]) + mod[(r / 4) * 3 * n + n + i];
     EXPECT_LT(rel_diff(label("rms_norm_modulated") + size, get(ya), want), 1e-6);
+
+    // An adaptive LayerNorm: LayerNorm without affine, then modulate in place (GR00T's DiT).
+    be->layer_norm(xa.at(), rows, n, Ptr<const float>(), Ptr<const float>(), eps, ya.at());
+    be->modulate(ya.at(), rows, n, ma.at(), ma.at(n), 3 * n, 4);
+    for (int64_t r = 0; r < rows; ++r)
+      for (int64_t i = 0; i < n; ++i)
+        want[r * n + i] = (x[r * n + i] - mean[r]) / std::sqrt(var[r] + eps) * (1.0 + mod[(r / 4) * 3 * n + i]) +
+                          mod[(r / 4) * 3 * n + n + i];
+    EXPECT_LT(rel_diff(label("layer_norm + modulate") + size, get(ya), want), 1e-6);
   }
 }
 
@@ -248,6 +257,28 @@ TEST_P(BackendOps, Rope) {
   }
 }
 
+// Rotation by angles the model computed itself (Qwen3-VL's multimodal and 2-D rotary): every head of a row shares them.
+TEST_P(BackendOps, RopeRotate) {
+  for (const auto& [H, D] : {std::pair<int64_t, int64_t>{16, 128}, {16, 64}, {2, 16}}) {
+    const int64_t rows = 11, half = D / 2;
+    const auto x = random_vec(rows * H * D, 31), angle = random_vec(rows * half, 32, -50, 50);
+    std::vector<float> cs(angle.size()), sn(angle.size());
+    for (std::size_t i = 0; i < angle.size(); ++i) cs[i] = std::cos(angle[i]), sn[i] = std::sin(angle[i]);
+    const Array<float> xa = put(x), ca = put(cs), sa = put(sn);
+    be->rope_rotate(xa.at(), rows, H, D, ca.at(), sa.at());
+    std::vector<double> want(x.size());
+    for (int64_t r = 0; r < rows; ++r)
+      for (int64_t h = 0; h < H; ++h)
+        for (int64_t i = 0; i < half; ++i) {
+          const double c = cs[r * half + i], s = sn[r * half + i];
+          const double x1 = x[(r * H + h) * D + i], x2 = x[(r * H + h) * D + half + i];
+          want[(r * H + h) * D + i] = x1 * c - x2 * s;
+          want[(r * H + h) * D + half + i] = x2 * c + x1 * s;
+        }
+    EXPECT_LT(rel_diff(label("rope_rotate head_dim=" + std::to_string(D)), get(xa), want), 1e-6);
+  }
+}
+
 double gelu_tanh_ref(double v) { return 0.5 * v * (1 + std::tanh(std::sqrt(2 / M_PI) * (v + 0.044715 * v * v * v))); }
 double silu_ref(double v) { return v / (1 + std::exp(-v)); }
 
@@ -266,6 +297,16 @@ TEST_P(BackendOps, Activations) {
     std::vector<double> want_act(x.size());
     for (std::size_t i = 0; i < x.size(); ++i) want_act[i] = f(x[i]);
     EXPECT_LT(rel_diff(label(std::string("activate ") + activation_name(act)), get(xa), want_act), 1e-6);
+  }
+  // The activations that have no gated form here (the Qwen3-VL mergers' exact GELU, the category MLPs' ReLU).
+  for (Activation act : {Activation::gelu_erf, Activation::relu}) {
+    const Array<float> xa = put(x);
+    be->activate(xa.at(), int64_t(x.size()), act);
+    std::vector<double> want(x.size());
+    for (std::size_t i = 0; i < x.size(); ++i)
+      want[i] = act == Activation::relu ? std::max(0.0, double(x[i])) : 0.5 * x[i] * (1 + std::erf(x[i] / std::sqrt(2.0)));
+    EXPECT_LT(rel_diff(label(std::string("activate ") + activation_name(act)), get(xa), want), 1e-6);
+    EXPECT_THROW(be->gated(xa.at(), 1, 4, act, xa.at()), Error) << activation_name(act);
   }
 }
 

@@ -82,15 +82,7 @@ class CpuBackend final : public Backend {
                           int64_t mod_stride, int64_t rows_per_group, float eps, Ptr<float> y) override {
     if (rows_per_group < 1) throw Error(ErrorCode::invalid_argument, "rms_norm_modulated: rows_per_group must be >= 1");
     cpu::rms_norm(x.address(), rows, n, nullptr, eps, y.address());
-    float* out = y.address();
-    const float *sc = scale.address(), *sh = shift.address();
-    for (int64_t r = 0; r < rows; ++r) {
-      const float* s = sc + (r / rows_per_group) * mod_stride;
-      const float* t = sh + (r / rows_per_group) * mod_stride;
-      float* yr = out + r * n;
-#pragma omp simd
-      for (int64_t i = 0; i < n; ++i) yr[i] = yr[i] * (1.0f + s[i]) + t[i];
-    }
+    modulate(y, rows, n, scale, shift, mod_stride, rows_per_group);
   }
   void attention(Ptr<const float> q, int64_t q_stride, Ptr<const float> k, Ptr<const float> v, int64_t kv_stride,
                  Ptr<const uint8_t> mask, int64_t batch, int64_t len_q, int64_t len_k, int64_t heads, int64_t kv_heads,
@@ -106,11 +98,34 @@ class CpuBackend final : public Backend {
                                                                                  : cpu::RopeAngles::inverse_frequency_bf16;
     cpu::rope(x.address(), batch, len, heads, head_dim, positions.address(), max_wavelength, a);
   }
+  void modulate(Ptr<float> y, int64_t rows, int64_t n, Ptr<const float> scale, Ptr<const float> shift,
+                int64_t mod_stride, int64_t rows_per_group) override {
+    if (rows_per_group < 1) throw Error(ErrorCode::invalid_argument, "modulate: rows_per_group must be >= 1");
+    float* out = y.address();
+    const float *sc = scale.address(), *sh = shift.address();
+    for (int64_t r = 0; r < rows; ++r) {
+      const float* s = sc + (r / rows_per_group) * mod_stride;
+      const float* t = sh + (r / rows_per_group) * mod_stride;
+      float* yr = out + r * n;
+#pragma omp simd
+      for (int64_t i = 0; i < n; ++i) yr[i] = yr[i] * (1.0f + s[i]) + t[i];
+    }
+  }
+  void rope_rotate(Ptr<float> x, int64_t rows, int64_t heads, int64_t head_dim, Ptr<const float> cos,
+                   Ptr<const float> sin) override {
+    cpu::rope_rotate(x.address(), rows, heads, head_dim, cos.address(), sin.address());
+  }
   void activate(Ptr<float> x, int64_t n, Activation act) override {
-    if (act == Activation::silu) cpu::silu(x.address(), n);
-    else cpu::gelu_tanh(x.address(), n);
+    switch (act) {
+      case Activation::silu: cpu::silu(x.address(), n); return;
+      case Activation::gelu_tanh: cpu::gelu_tanh(x.address(), n); return;
+      case Activation::gelu_erf: cpu::gelu_erf(x.address(), n); return;
+      case Activation::relu: cpu::relu(x.address(), n); return;
+    }
   }
   void gated(Ptr<const float> gate_up, int64_t rows, int64_t n, Activation act, Ptr<float> out) override {
+    if (act != Activation::silu && act != Activation::gelu_tanh)
+      throw Error(ErrorCode::unsupported, std::string("gated: no gated form of ") + backend::activation_name(act));
     const float* gu = gate_up.address();
     float* o = out.address();
     // Rows in parallel (each row's kernel then runs on its thread alone); one row splits its own elements.

@@ -180,6 +180,27 @@ void rms_norm(const float* x, int64_t rows, int64_t n, const float* weight, floa
   }
 }
 
+void rope_rotate(float* x, int64_t rows, int64_t heads, int64_t head_dim, const float* cos, const float* sin) {
+  require(head_dim > 0 && head_dim % 2 == 0, "rope_rotate", [&] { return "head_dim must be even, got " + std::to_string(head_dim); });
+  const int64_t half = head_dim / 2;
+#pragma omp parallel for schedule(static) if (rows * heads * head_dim >= kParallelMin)
+  for (int64_t r = 0; r < rows; ++r) {
+    const float* cs = cos + r * half;
+    const float* sn = sin + r * half;
+    for (int64_t h = 0; h < heads; ++h) {
+      float* x1 = x + (r * heads + h) * head_dim;
+      float* x2 = x1 + half;
+#pragma omp simd
+      for (int64_t i = 0; i < half; ++i) {
+        const float a = x1[i];
+        const float b = x2[i];
+        x1[i] = a * cs[i] - b * sn[i];
+        x2[i] = b * cs[i] + a * sn[i];
+      }
+    }
+  }
+}
+
 void rope(float* x, int64_t batch, int64_t len, int64_t heads, int64_t head_dim, const int64_t* positions,
           float max_wavelength, RopeAngles angles) {
   const bool inverse_frequency = angles != RopeAngles::timescale_division;
@@ -277,6 +298,20 @@ void gelu_tanh_mul(const float* gate, const float* up, int64_t n, float* out) {
 
 void silu(float* x, int64_t n) {
   for_chunks(n, [x](int64_t begin, int64_t end) { silu_best(x, begin, end); });
+}
+
+void gelu_erf(float* x, int64_t n) {
+  constexpr float kInvSqrt2 = float(0.70710678118654752440);
+  for_chunks(n, [x](int64_t begin, int64_t end) {
+    for (int64_t i = begin; i < end; ++i) x[i] = (x[i] * 0.5f) * (1.0f + std::erf(x[i] * kInvSqrt2));
+  });
+}
+
+void relu(float* x, int64_t n) {
+  for_chunks(n, [x](int64_t begin, int64_t end) {
+#pragma omp simd
+    for (int64_t i = begin; i < end; ++i) x[i] = x[i] < 0.0f ? 0.0f : x[i];
+  });
 }
 
 void silu_mul(const float* gate, const float* up, int64_t n, float* out) {

@@ -20,6 +20,10 @@ enum class RopeAngles { timescale_division, inverse_frequency, inverse_frequency
 void rope(float* x, int64_t batch, int64_t len, int64_t heads, int64_t head_dim, const int64_t* positions,
           float max_wavelength, RopeAngles angles = RopeAngles::timescale_division);
 
+// Rotary embedding in place from precomputed angles: x [rows, heads, head_dim] (split halves), cos and sin
+// [rows, head_dim / 2], the same angles for every head of a row.
+void rope_rotate(float* x, int64_t rows, int64_t heads, int64_t head_dim, const float* cos, const float* sin);
+
 // Masked grouped-query attention.
 // q: [B, Lq, H, D] with row stride q_stride between tokens (elements); k, v: [B, Lk, KvH, D] with token stride
 // kv_stride; mask: [B, Lq, Lk] bytes, nonzero = may attend (null = attend everywhere). out: [B, Lq, H*D].
@@ -45,6 +49,9 @@ float lane_sum(const float* x, int64_t n);
 // "gelu_pytorch_tanh"); silu is x * sigmoid(x). Both are within a few ulp of the exact functions.
 void gelu_tanh(float* x, int64_t n);
 void silu(float* x, int64_t n);
+// PyTorch's exact GELU, (x * 0.5) * (1 + erf(x / sqrt(2))); relu: max(x, 0) (NaN stays NaN).
+void gelu_erf(float* x, int64_t n);
+void relu(float* x, int64_t n);
 // out[i] = silu(gate[i]) * up[i]; out may alias gate.
 void silu_mul(const float* gate, const float* up, int64_t n, float* out);
 // out = gelu_tanh(gate) * up, with gelu's result rounded to float32 before the product (as upstream's separate tensors).
