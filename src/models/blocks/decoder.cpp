@@ -61,6 +61,10 @@ void DecoderLayer::load(backend::Backend& be, Weights& w, const std::string& p, 
     input_norm = be.constant(w.f32(p + "input_layernorm.weight", {hidden}), hidden);
     post_norm = be.constant(w.f32(p + "post_attention_layernorm.weight", {hidden}), hidden);
   }
+  if (cfg.qk_norm) {
+    q_norm = be.constant(w.f32(p + "self_attn.q_norm.weight", {cfg.head_dim}), cfg.head_dim);
+    k_norm = be.constant(w.f32(p + "self_attn.k_norm.weight", {cfg.head_dim}), cfg.head_dim);
+  }
 
   const std::string q = p + "self_attn.q_proj", k = p + "self_attn.k_proj", v = p + "self_attn.v_proj";
   const bool bias = cfg.attention_bias;
@@ -162,31 +166,51 @@ void DecoderStack::load(backend::Backend& be, Weights& w, const std::string& pre
 
 void DecoderStack::forward(backend::Backend& be, Ptr<float> x, int64_t B, int64_t len, Ptr<const int64_t> positions,
                            Ptr<const uint8_t> mask, KvCache& cache) {
+  run(be, x, B, len, positions, nullptr, mask, cache, nullptr);
+}
+
+void DecoderStack::forward(backend::Backend& be, Ptr<float> x, int64_t B, int64_t len, const RotaryTable& rotary,
+                           Ptr<const uint8_t> mask, KvCache& cache, const std::function<void(int64_t layer)>& after_layer) {
+  run(be, x, B, len, Ptr<const int64_t>(), &rotary, mask, cache, after_layer ? &after_layer : nullptr);
+}
+
+void DecoderStack::run(backend::Backend& be, Ptr<float> x, int64_t B, int64_t len, Ptr<const int64_t> positions,
+                       const RotaryTable* rotary, Ptr<const uint8_t> mask, KvCache& cache,
+                       const std::function<void(int64_t layer)>* after_layer) {
   const int64_t D = cfg_.hidden, H = cfg_.heads, KvH = cfg_.kv_heads, hd = cfg_.head_dim;
   const int64_t q_dim = H * hd, kv_dim = KvH * hd, rows = B * len;
   if (cache.batch != B || cache.capacity < len || cache.kv_dim != kv_dim || int64_t(cache.k.size()) < layers())
     throw Error(ErrorCode::internal, "decoder: the K/V cache does not fit this batch");
   scratch_.reserve(be, rows, D, q_dim, kv_dim, cfg_.intermediate);
   const float scale_qk = 1.0f / std::sqrt(float(hd));
+  // Rotates `heads` heads of `n` tokens of item b in place, by position or by the given angles.
+  const auto rotate = [&](Ptr<float> t, int64_t b, int64_t n, int64_t heads) {
+    if (rotary) be.rope_rotate(t, n, heads, hd, rotary->cos + b * len * (hd / 2), rotary->sin + b * len * (hd / 2));
+    else be.rope(t, 1, n, heads, hd, positions + b * len, cfg_.rope_wavelength, cfg_.rope_angles);
+  };
   for (std::size_t li = 0; li < layers_.size(); ++li) {
     const DecoderLayer& L = layers_[li];
     const bool kv_only = bool(L.kv);
     norm_input(be, L, cfg_, x, rows, scratch_.normed.at(), scratch_);
     be.linear(kv_only ? *L.kv : *L.qkv, scratch_.normed.at(), rows, scratch_.qkv.at());
     const int64_t stride = kv_only ? 2 * kv_dim : q_dim + 2 * kv_dim, k_off = kv_only ? 0 : q_dim;
-    if (!kv_only) be.copy_rows(scratch_.qkv.at(), stride, scratch_.q.at(), q_dim, rows, q_dim);
+    if (!kv_only) {
+      be.copy_rows(scratch_.qkv.at(), stride, scratch_.q.at(), q_dim, rows, q_dim);
+      if (cfg_.qk_norm) be.rms_norm(scratch_.q.at(), rows * H, hd, L.q_norm.at(), cfg_.rms_norm_eps, scratch_.q.at());
+    }
     for (int64_t b = 0; b < B; ++b) {
       const Ptr<float> kc = cache.k_at(int64_t(li), b, 0), vc = cache.v_at(int64_t(li), b, 0);
       be.copy_rows(scratch_.qkv.at(b * len * stride + k_off), stride, kc, kv_dim, len, kv_dim);
       be.copy_rows(scratch_.qkv.at(b * len * stride + k_off + kv_dim), stride, vc, kv_dim, len, kv_dim);
-      be.rope(kc, 1, len, KvH, hd, positions + b * len, cfg_.rope_wavelength, cfg_.rope_angles);
+      if (cfg_.qk_norm) be.rms_norm(kc, len * KvH, hd, L.k_norm.at(), cfg_.rms_norm_eps, kc);
+      rotate(kc, b, len, KvH);
       if (kv_only) continue;
-      be.rope(scratch_.q.at(b * len * q_dim), 1, len, H, hd, positions + b * len, cfg_.rope_wavelength,
-              cfg_.rope_angles);
+      rotate(scratch_.q.at(b * len * q_dim), b, len, H);
       be.attention(scratch_.q.at(b * len * q_dim), q_dim, kc, vc, kv_dim, mask + b * len * len, 1, len, len, H, KvH, hd,
                    scale_qk, scratch_.attn.at(b * len * q_dim));
     }
     if (!kv_only) finish_layer(be, L, cfg_, scratch_.attn.at(), rows, x, scratch_);
+    if (after_layer) (*after_layer)(int64_t(li));
   }
 }
 

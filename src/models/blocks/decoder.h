@@ -4,6 +4,7 @@
 #pragma once
 
 #include <cstdint>
+#include <functional>
 #include <memory>
 #include <string>
 #include <vector>
@@ -27,6 +28,7 @@ struct DecoderConfig {
   backend::RopeAngles rope_angles = backend::RopeAngles::timescale_division;
   float embedding_scale = 1.0f;  // token embeddings are multiplied by this (sqrt(hidden) for Gemma and SmolVLA)
   int64_t cond_dim = 0;          // adaptive norms: width of the conditioning vector (pi0.5's time embedding)
+  bool qk_norm = false;          // Qwen3: an RMSNorm over each head of q and k (`q_norm`, `k_norm`) before RoPE
   // Reads a transformers LlamaConfig object; absent fields take the upstream class defaults.
   static DecoderConfig from_llama_json(const Json& j, const std::string& where);
 };
@@ -60,6 +62,7 @@ struct DecoderLayer {
   NormKind norm = NormKind::rms;
   MlpKind mlp = MlpKind::swiglu;
   backend::Array<float> input_norm, post_norm;  // weights of the two norms (empty for adaptive norms)
+  backend::Array<float> q_norm, k_norm;         // per-head norms of q and k [head_dim] (DecoderConfig::qk_norm)
   // Adaptive norms: the conditioning's [scale | shift | gate] for each norm (`<norm>.dense`, cond_dim -> 3 * hidden).
   std::unique_ptr<backend::LinearWeights> input_mod, post_mod;
   std::unique_ptr<backend::LinearWeights> qkv;  // self: [q | k | v]; cross: q only
@@ -93,6 +96,12 @@ void norm_input(backend::Backend& be, const DecoderLayer& L, const DecoderConfig
 void finish_layer(backend::Backend& be, const DecoderLayer& L, const DecoderConfig& cfg, backend::Ptr<const float> attn,
                   int64_t rows, backend::Ptr<float> x, DecoderScratch& s, const Conditioning* cond = nullptr);
 
+// RoPE angles the model computed itself, one row per token of the batch ([batch * len, head_dim / 2] each), for
+// position schemes the decoder does not derive from a position (Qwen3-VL's interleaved multimodal RoPE).
+struct RotaryTable {
+  backend::Ptr<const float> cos, sin;
+};
+
 // A decoder over a prefix whose keys and values are kept for later tokens. The last layer may be `kv_only`: when
 // nothing reads the stack's output, only that layer's K/V are computed.
 class DecoderStack {
@@ -105,9 +114,17 @@ class DecoderStack {
   // every layer's post-RoPE K/V in cache rows [0, len).
   void forward(backend::Backend& be, backend::Ptr<float> x, int64_t batch, int64_t len,
                backend::Ptr<const int64_t> positions, backend::Ptr<const uint8_t> mask, KvCache& cache);
+  // The same with the angles given, and `after_layer(i)` called after layer i has updated x (where a model adds
+  // something between layers: Qwen3-VL's DeepStack features).
+  void forward(backend::Backend& be, backend::Ptr<float> x, int64_t batch, int64_t len, const RotaryTable& rotary,
+               backend::Ptr<const uint8_t> mask, KvCache& cache, const std::function<void(int64_t layer)>& after_layer);
   LayerFlops flops(int64_t batch, int64_t len) const;
 
  private:
+  void run(backend::Backend& be, backend::Ptr<float> x, int64_t batch, int64_t len,
+           backend::Ptr<const int64_t> positions, const RotaryTable* rotary, backend::Ptr<const uint8_t> mask,
+           KvCache& cache, const std::function<void(int64_t layer)>* after_layer);
+
   DecoderConfig cfg_;
   std::vector<DecoderLayer> layers_;
   DecoderScratch scratch_;
