@@ -72,8 +72,9 @@ echo "$family: lerobot (PyTorch fp32, $(nproc) threads): $ref_iterations runs af
 tools/oracle/run.sh bench/lerobot_reference.py --checkpoint "$checkpoint" "${image_args[@]}" --state="$state" \
   --instruction "$instruction" --noise "$work/noise.safetensors" --warmup "$warmup" --iterations "$ref_iterations" \
   --out "$work/ref.safetensors" > "$work/ref.json"
-# fp32, then both half-precision paths. On a CPU with bf16 instructions bf16 runs natively; elsewhere (or under
-# TETHER_MAX_CPU_ISA=AVX2) it keeps bf16 weights widened to fp32 in the kernel, as fp16 always does.
+# fp32, then both half-precision paths. bf16 runs natively where the CPU's bf16 dot product measures faster than its
+# fp32 FMA (see `tether doctor`); elsewhere (or under TETHER_MAX_CPU_ISA=AVX2) it keeps bf16 weights widened to fp32
+# in the kernel, as fp16 always does.
 for precision in fp32 bf16 fp16; do
   echo "tether ($precision): $iterations runs after $warmup warm-up..." >&2
   build/release/tether bench "$checkpoint" "${image_args[@]}" --state="$state" --instruction "$instruction" \
