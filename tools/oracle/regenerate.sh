@@ -11,6 +11,8 @@ for gen in tokenizer_fixtures.py paligemma_tokenizer_fixtures.py vision_fixtures
     "$here/run.sh" "$here/$gen"
   fi
 done
+echo "== GR00T N1.7 camera-frame fixtures (cv2 INTER_AREA, torchvision bicubic, lerobot geometry, Qwen2-VL processor)"
+"$here/run.sh" "$here/gr00t_vision_fixtures.py"
 echo "== smolvla fixtures"
 "$here/run.sh" "$here/smolvla_oracle.py" fixtures --out "$root/tests/fixtures/smolvla"
 echo "== legacy (pre-0.4 layout) fixture, compared against upstream's migrated run"
@@ -29,5 +31,8 @@ echo "== pi0 / pi0.5 real-time chunking fixtures (read the pi0 and pi05 cam2_bf1
 echo "== FluxVLA pi0.5 run directories (read the pi05 cam1_quantiles_bins and variant_dims cases)"
 "$here/run.sh" "$here/fluxvla_oracle.py" fixtures
 "$here/run.sh" "$here/fluxvla_oracle.py" tokenizer
+echo "== GR00T N1.7 fixtures (the stand-in Qwen3-VL backbone repository's hub cache first)"
+"$here/run.sh" "$here/gr00t_oracle.py" hub --tiny-only
+"$here/run.sh" "$here/gr00t_oracle.py" fixtures
 echo "== demo policy"
 "$here/run.sh" "$here/smolvla_oracle.py" demo --out "$root/models/demo"
