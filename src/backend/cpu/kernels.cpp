@@ -180,6 +180,22 @@ void rms_norm(const float* x, int64_t rows, int64_t n, const float* weight, floa
   }
 }
 
+// One token's heads rotated in place, split halves: x1' = x1 cos - x2 sin, x2' = x2 cos + x1 sin.
+inline void rotate_heads(float* x, int64_t heads, int64_t head_dim, const float* cs, const float* sn) {
+  const int64_t half = head_dim / 2;
+  for (int64_t h = 0; h < heads; ++h) {
+    float* x1 = x + h * head_dim;
+    float* x2 = x1 + half;
+#pragma omp simd
+    for (int64_t i = 0; i < half; ++i) {
+      const float a = x1[i];
+      const float b = x2[i];
+      x1[i] = a * cs[i] - b * sn[i];
+      x2[i] = b * cs[i] + a * sn[i];
+    }
+  }
+}
+
 void rope_rotate(float* x, int64_t rows, int64_t heads, int64_t head_dim, const float* cos, const float* sin) {
   require(head_dim > 0 && head_dim % 2 == 0, "rope_rotate", [&] { return "head_dim must be even, got " + std::to_string(head_dim); });
   const int64_t half = head_dim / 2;
@@ -187,17 +203,7 @@ void rope_rotate(float* x, int64_t rows, int64_t heads, int64_t head_dim, const 
   for (int64_t r = 0; r < rows; ++r) {
     const float* cs = cos + r * half;
     const float* sn = sin + r * half;
-    for (int64_t h = 0; h < heads; ++h) {
-      float* x1 = x + (r * heads + h) * head_dim;
-      float* x2 = x1 + half;
-#pragma omp simd
-      for (int64_t i = 0; i < half; ++i) {
-        const float a = x1[i];
-        const float b = x2[i];
-        x1[i] = a * cs[i] - b * sn[i];
-        x2[i] = b * cs[i] + a * sn[i];
-      }
-    }
+    rotate_heads(x + r * heads * head_dim, heads, head_dim, cs, sn);
   }
 }
 
@@ -235,17 +241,7 @@ void rope(float* x, int64_t batch, int64_t len, int64_t heads, int64_t head_dim,
         sn[i] = std::sin(radians);
         cs[i] = std::cos(radians);
       }
-      for (int64_t h = 0; h < heads; ++h) {
-        float* x1 = x + (t * heads + h) * head_dim;
-        float* x2 = x1 + half;
-#pragma omp simd
-        for (int64_t i = 0; i < half; ++i) {
-          const float a = x1[i];
-          const float b = x2[i];
-          x1[i] = a * cs[i] - b * sn[i];
-          x2[i] = b * cs[i] + a * sn[i];
-        }
-      }
+      rotate_heads(x + t * heads * head_dim, heads, head_dim, cs, sn);
     }
   }
 }
