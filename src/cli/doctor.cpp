@@ -232,7 +232,8 @@ void model_checks(const std::string& dir, std::vector<Check>& out) {
                    "needs about " + gb(need_half) + ", " + gb(avail) + " available",
                    "free memory, or use a machine with more"});
     if (family && has_config) {
-      const models::Normalization n = family->load_normalization(d, read_json_file((d / "config.json").string()), store);
+      const models::Normalization n =
+          family->load_normalization(d, read_json_file((d / "config.json").string()), store, models::LoadOptions{});
       out.push_back({"model", "normalisation", n.warnings.empty() ? Status::ok : Status::warn,
                      n.warnings.empty() ? "statistics present for every normalised feature"
                                         : [&] {

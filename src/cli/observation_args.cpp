@@ -84,10 +84,10 @@ policy::Observation ObservationArgs::build(const policy::Policy& policy) const {
   obs.seed = seed;
   if (!noise_file.empty()) {
     obs.noise = SafeTensorsFile::open(noise_file).get("noise").to_f32();
-    if (int64_t(obs.noise.size()) != spec.chunk_size * spec.max_action_dim)
+    if (int64_t(obs.noise.size()) != spec.noise_rows() * spec.max_action_dim)
       throw Error(ErrorCode::invalid_argument, noise_file + ": 'noise' has " + std::to_string(obs.noise.size()) +
-                                                   " values, expected chunk_size x max_action_dim = " +
-                                                   std::to_string(spec.chunk_size * spec.max_action_dim));
+                                                   " values, expected " + std::to_string(spec.noise_rows()) + " x max_action_dim = " +
+                                                   std::to_string(spec.noise_rows() * spec.max_action_dim));
   }
   return obs;
 }

@@ -74,7 +74,7 @@ std::vector<CaseDiff> compare_with_oracle(const std::string& reference_dir, poli
   for (std::size_t b = 0; b < batch.size(); ++b) {
     batch[b].state.assign(states.begin() + int64_t(b) * state.dim(1), states.begin() + int64_t(b + 1) * state.dim(1));
     batch[b].instruction = instructions.at(b).get<std::string>();
-    const int64_t n = spec.chunk_size * spec.max_action_dim;
+    const int64_t n = spec.noise_rows() * spec.max_action_dim;
     batch[b].noise.assign(noise.begin() + int64_t(b) * n, noise.begin() + int64_t(b + 1) * n);
     // The cameras the run was given (input_files); the oracle's `cameras` also lists the ones it left out.
     for (auto cam = files.begin(); cam != files.end(); ++cam)

@@ -60,9 +60,10 @@ struct FamilyDescriptor {
   std::vector<std::string> (*weight_files)(const std::filesystem::path& dir) = nullptr;
   // Opens the weights (one file or the shards of an index).
   TensorStore (*open_weights)(const std::filesystem::path& dir) = nullptr;
-  // Reads the normaliser; may take tensors out of `weights` (statistics a legacy layout kept there).
-  Normalization (*load_normalization)(const std::filesystem::path& dir, const Json& config, TensorStore& weights) =
-      nullptr;
+  // Reads the normaliser; may take tensors out of `weights` (statistics a legacy layout kept there). `options` says
+  // which embodiment is served, for checkpoints that hold statistics per embodiment.
+  Normalization (*load_normalization)(const std::filesystem::path& dir, const Json& config, TensorStore& weights,
+                                      const LoadOptions& options) = nullptr;
   // Builds the model from the opened weights.
   std::unique_ptr<Model> (*load)(const std::filesystem::path& dir, const Json& config, TensorStore weights,
                                  const LoadOptions& options) = nullptr;

@@ -12,7 +12,7 @@ namespace tether::models {
 ModelOutput Model::begin_predict(const std::vector<ModelInput>& batch) const {
   if (batch.empty()) throw Error(ErrorCode::invalid_argument, "predict: empty batch");
   const ModelSpec& s = spec();
-  const int64_t C = s.chunk_size, A = s.max_action_dim;
+  const int64_t C = s.noise_rows(), A = s.max_action_dim;
   for (std::size_t b = 0; b < batch.size(); ++b) {
     if (int64_t(batch[b].state.size()) != s.state_dim)
       throw Error(ErrorCode::invalid_argument, "observation " + std::to_string(b) + ": state has " +
@@ -25,7 +25,7 @@ ModelOutput Model::begin_predict(const std::vector<ModelInput>& batch) const {
   }
   ModelOutput out;
   out.batch = int64_t(batch.size());
-  out.chunk_size = C;
+  out.chunk_size = s.chunk_size;
   out.action_dim = s.action_dim;
   out.warnings.resize(batch.size());
   return out;
@@ -37,7 +37,7 @@ void Model::sample_actions(backend::Backend& be, const std::vector<ModelInput>& 
                            ModelOutput& out) const {
   const ModelSpec& s = spec();
   const auto t0 = std::chrono::steady_clock::now();
-  const int64_t B = int64_t(batch.size()), C = s.chunk_size, A = s.max_action_dim;
+  const int64_t B = int64_t(batch.size()), C = s.noise_rows(), A = s.max_action_dim;
   std::vector<float> noise(std::size_t(B * C * A));
   for (int64_t b = 0; b < B; ++b) {
     float* dst = &noise[std::size_t(b * C * A)];
@@ -51,12 +51,15 @@ void Model::sample_actions(backend::Backend& be, const std::vector<ModelInput>& 
   out.steps_used = euler_sample(be, x, v, {B, C, A, s.action_dim}, schedule, controls, velocity, on_step0_velocity);
   out.timings.set("denoise", std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - t0).count());
 
-  // `noise` is reused for the result: the padded [B*C, A] rows, then cut to action_dim.
+  // `noise` is reused for the result: the padded [B*C, A] rows, then cut to the first chunk_size rows of each item
+  // and to action_dim.
   be.download(backend::Ptr<const float>(x), B * C * A, noise.data());
-  out.actions.resize(std::size_t(B * C * s.action_dim));
-  for (int64_t r = 0; r < B * C; ++r)
-    std::memcpy(&out.actions[std::size_t(r * s.action_dim)], &noise[std::size_t(r * A)],
-                std::size_t(s.action_dim) * sizeof(float));
+  const int64_t kept = s.chunk_size;
+  out.actions.resize(std::size_t(B * kept * s.action_dim));
+  for (int64_t b = 0; b < B; ++b)
+    for (int64_t r = 0; r < kept; ++r)
+      std::memcpy(&out.actions[std::size_t((b * kept + r) * s.action_dim)], &noise[std::size_t((b * C + r) * A)],
+                  std::size_t(s.action_dim) * sizeof(float));
 }
 
 void Model::dump_prefix_kv(backend::Backend& be, const std::vector<backend::Array<float>>& k,

@@ -65,6 +65,10 @@ struct ModelSpec {
   std::string tokenizer_source;     // the file its vocabulary was read from (tokenizer.json or tokenizer.model)
   std::string state_key, action_key;  // the feature keys the normaliser knows them by
   int64_t state_dim = 0, action_dim = 0, chunk_size = 0, num_steps = 0;
+  // Rows the sampler draws and denoises when the model predicts more than it returns (GR00T: its action horizon, of
+  // which the checkpoint keeps the first chunk_size); 0: chunk_size. The noise a request sends has these rows.
+  int64_t sampled_chunk = 0;
+  int64_t noise_rows() const { return sampled_chunk > 0 ? sampled_chunk : chunk_size; }
   // The state and action vectors as named groups in concatenation order; their dims add up to state_dim and
   // action_dim. A lerobot checkpoint has one of each (single_groups). Empty on a spec built by hand: read through
   // state_groups() / action_groups(), which give the single groups then.
@@ -81,6 +85,9 @@ struct LoadOptions {
   cpu::Precision precision = cpu::Precision::fp32;
   // Where the model runs; null: the CPU backend.
   std::shared_ptr<backend::Backend> backend;
+  // For checkpoints trained on several embodiments (GR00T): the tag served, as the checkpoint names it. Empty: the
+  // checkpoint's only one (an error lists the tags when there are several).
+  std::string embodiment;
 };
 
 // Called with named intermediates ("mid.vision.<camera>", "mid.prefix_k.0", ...) when set: parity failures are

@@ -12,13 +12,14 @@ const char* norm_mode_name(NormMode m) {
     case NormMode::min_max: return "MIN_MAX";
     case NormMode::quantiles: return "QUANTILES";
     case NormMode::quantile10: return "QUANTILE10";
+    case NormMode::min_max_clipped: return "MIN_MAX_CLIPPED";
   }
   return "?";
 }
 
 std::optional<NormMode> parse_norm_mode(const std::string& name) {
   for (NormMode m : {NormMode::identity, NormMode::mean_std, NormMode::min_max, NormMode::quantiles,
-                     NormMode::quantile10})
+                     NormMode::quantile10, NormMode::min_max_clipped})
     if (name == norm_mode_name(m)) return m;
   return std::nullopt;
 }
@@ -27,7 +28,8 @@ std::vector<std::string> required_stats(NormMode m) {
   switch (m) {
     case NormMode::identity: return {};
     case NormMode::mean_std: return {"mean", "std"};
-    case NormMode::min_max: return {"min", "max"};
+    case NormMode::min_max:
+    case NormMode::min_max_clipped: return {"min", "max"};
     case NormMode::quantiles: return {"q01", "q99"};
     case NormMode::quantile10: return {"q10", "q90"};
   }

@@ -9,7 +9,10 @@
 
 namespace tether::models {
 
-enum class NormMode { identity, mean_std, min_max, quantiles, quantile10 };
+// min_max_clipped (GR00T): 2 (x - min) / (max - min) - 1, 0 where max == min, clipped to [-1, 1]; outputs are
+// clipped to [-1, 1] before (y + 1) / 2 (max - min) + min. Its min / max are the bounds the checkpoint chose (q01 / q99
+// when it uses percentiles).
+enum class NormMode { identity, mean_std, min_max, quantiles, quantile10, min_max_clipped };
 const char* norm_mode_name(NormMode m);                     // "MEAN_STD", ...
 std::optional<NormMode> parse_norm_mode(const std::string& name);
 std::vector<std::string> required_stats(NormMode m);        // {"mean", "std"}, ...

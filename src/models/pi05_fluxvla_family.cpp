@@ -209,7 +209,7 @@ TensorStore open_weights(const fs::path& dir) {
   return store;
 }
 
-Normalization load_normalization(const fs::path& dir, const Json& config, TensorStore&) {
+Normalization load_normalization(const fs::path& dir, const Json& config, TensorStore&, const LoadOptions&) {
   Normalization n;
   const auto [key, stats] = dataset_statistics(dir, config);
   const std::string where = (dir / kStatsFile).string() + ": " + key;

@@ -18,7 +18,7 @@ std::vector<std::string> weight_files(const fs::path& dir) { return TensorStore:
 
 TensorStore open_weights(const fs::path& dir) { return TensorStore::open_dir(dir.string()); }
 
-Normalization load_normalization(const fs::path& dir, const Json& config, TensorStore& weights) {
+Normalization load_normalization(const fs::path& dir, const Json& config, TensorStore& weights, const LoadOptions&) {
   return lerobot::load_normalization(dir.string(), config, weights);
 }
 

@@ -5,6 +5,7 @@
 
 #include "core/hash.h"
 #include "models/family.h"
+#include "models/gr00t.h"
 #include "models/pi0.h"
 #include "models/pi05_fluxvla.h"
 #include "models/smolvla.h"
@@ -19,6 +20,7 @@ const std::vector<const FamilyDescriptor*>& families() {
       &pi0_family(),
       &pi05_family(),
       &pi05_fluxvla_family(),
+      &gr00t_n17_family(),
   };
   return kFamilies;
 }
@@ -116,7 +118,7 @@ LoadedCheckpoint load_checkpoint(const fs::path& dir, const LoadOptions& options
   out.config = std::move(probe.config);
   out.weight_files = out.family->weight_files(dir);
   TensorStore weights = out.family->open_weights(dir);
-  out.normalization = out.family->load_normalization(dir, out.config, weights);
+  out.normalization = out.family->load_normalization(dir, out.config, weights, options);
   out.model = out.family->load(dir, out.config, std::move(weights), options);
   return out;
 }

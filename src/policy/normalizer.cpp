@@ -44,6 +44,18 @@ void Normalizer::apply(const std::string& key, float* x, int64_t n, Direction di
         v = inverse ? (v + 1.f) * denom / 2.f + lo : 2.f * (v - lo) / denom - 1.f;
         break;
       }
+      case NormMode::min_max_clipped: {
+        // GR00T N1.7's pack and decode steps (lerobot): float32, in their operation order.
+        const float lo = stat("min")[j], d = stat("max")[j] - lo;
+        if (inverse) {
+          const float c = v < -1.f ? -1.f : v > 1.f ? 1.f : v;
+          v = (c + 1.f) * 0.5f * d + lo;
+        } else {
+          v = d == 0.f ? 0.f : 2.f * (v - lo) / d - 1.f;
+          if (direction == Direction::normalize) v = v < -1.f ? -1.f : v > 1.f ? 1.f : v;
+        }
+        break;
+      }
       case NormMode::identity: break;
     }
   }

@@ -150,8 +150,9 @@ std::optional<PaddingConfig> parse_padding(const Json& j, const std::string& whe
 struct BuildOptions {
   // transformers classes whose constructor builds the pipeline around the file's vocabulary:
   // GPT2Tokenizer (ByteLevel only, BPE options reset) and GemmaTokenizer (SentencePiece-style BPE).
-  enum class Rebuild { none, gpt2, gemma } rebuild = Rebuild::none;
-  bool add_prefix_space = false;                 // GPT2Tokenizer's ByteLevel option
+  // Qwen2Tokenizer (Qwen3-VL, so GR00T N1.7): NFC, Qwen2's split regex, ByteLevel without its own regex.
+  enum class Rebuild { none, gpt2, gemma, qwen2 } rebuild = Rebuild::none;
+  bool add_prefix_space = false;                 // GPT2Tokenizer's and Qwen2Tokenizer's ByteLevel option
   std::string unk_token;                         // GemmaTokenizer's BPE unk_token
   std::optional<std::vector<AddedToken>> added;  // replaces the file's added_tokens
   std::vector<AddedToken> extra;                 // registered after them
@@ -188,6 +189,24 @@ std::shared_ptr<TokenizerImpl> build(const Json& root, const std::string& where,
         {"type", "ByteLevel"}, {"add_prefix_space", opt.add_prefix_space}, {"use_regex", true}};
     impl->pre_tokenizer = make_pre_tokenizer(byte_level, where + ": GPT2Tokenizer pre_tokenizer");
     impl->decoder = make_decoder(byte_level, where + ": GPT2Tokenizer decoder");
+  } else if (opt.rebuild == BuildOptions::Rebuild::qwen2) {
+    // Qwen2Tokenizer.__init__ (transformers 5.x): BPE(vocab, merges) with default options, NFC, a Split on the
+    // class's pre-tokenize regex (isolated), ByteLevel(use_regex=False), ByteLevel decoder.
+    impl->model = std::make_unique<BpeModel>(rebuilt_model(), where);
+    impl->normalizer = make_normalizer({{"type", "NFC"}}, where + ": Qwen2Tokenizer normalizer");
+    static const char* kQwen2Split =
+        R"((?i:'s|'t|'re|'ve|'m|'ll|'d)|[^\r\n\p{L}\p{N}]?\p{L}+|\p{N}| ?[^\s\p{L}\p{N}]+[\r\n]*|\s*[\r\n]+|\s+(?!\S)|\s+)";
+    const Json byte_level = {
+        {"type", "ByteLevel"}, {"add_prefix_space", opt.add_prefix_space}, {"use_regex", false}};
+    impl->pre_tokenizer = make_pre_tokenizer(
+        {{"type", "Sequence"},
+         {"pretokenizers", Json::array({Json{{"type", "Split"},
+                                             {"pattern", {{"Regex", kQwen2Split}}},
+                                             {"behavior", "Isolated"},
+                                             {"invert", false}},
+                                        byte_level})}},
+        where + ": Qwen2Tokenizer pre_tokenizer");
+    impl->decoder = make_decoder(byte_level, where + ": Qwen2Tokenizer decoder");
   } else if (opt.rebuild == BuildOptions::Rebuild::gemma) {
     // GemmaTokenizer.__init__ (transformers 5.x): BPE(vocab, merges, fuse_unk=True,
     // unk_token, byte_fallback=True), spaces replaced by U+2581 before a split on spaces (which so
@@ -348,8 +367,11 @@ LoadedTokenizer load_tokenizer_files(const std::string& json_path, bool has_json
   if (base.size() > 4 && base.compare(base.size() - 4, 4, "Fast") == 0 &&
       base != "PreTrainedTokenizerFast")
     base.resize(base.size() - 4);
-  const bool gemma = base == "GemmaTokenizer";
-  if (base == "GPT2Tokenizer") {
+  const bool gemma = base == "GemmaTokenizer", qwen2 = base == "Qwen2Tokenizer";
+  if (qwen2) {
+    opt.rebuild = BuildOptions::Rebuild::qwen2;
+    opt.add_prefix_space = json_get_or<bool>(config, "add_prefix_space", false, config_path);
+  } else if (base == "GPT2Tokenizer") {
     opt.rebuild = BuildOptions::Rebuild::gpt2;
     opt.add_prefix_space = json_get_or<bool>(config, "add_prefix_space", false, config_path);
   } else if (gemma) {
@@ -381,6 +403,11 @@ LoadedTokenizer load_tokenizer_files(const std::string& json_path, bool has_json
                           "cls_token", "mask_token"}) {
     if (auto it = config.find(key); it != config.end()) {
       if (auto t = config_token(*it, config_path + ": " + key)) named.emplace_back(key, *t);
+      continue;
+    }
+    if (qwen2) {  // Qwen2Tokenizer.__init__'s defaults: unk, eos and pad are all <|endoftext|>
+      if (std::string(key) == "unk_token" || std::string(key) == "eos_token" || std::string(key) == "pad_token")
+        named.emplace_back(key, *config_token(Json("<|endoftext|>"), key));
       continue;
     }
     if (!gemma) continue;

@@ -179,6 +179,18 @@ bool is_numeric(char32_t c) {
   return t == U_DECIMAL_DIGIT_NUMBER || t == U_LETTER_NUMBER || t == U_OTHER_NUMBER;
 }
 
+bool is_python_alnum(char32_t c) {
+  if (c < 0x80) return (c >= '0' && c <= '9') || (c >= 'a' && c <= 'z') || (c >= 'A' && c <= 'Z');
+  const uint32_t mask = U_MASK(u_charType(static_cast<UChar32>(c)));
+  return (mask & (U_GC_L_MASK | U_GC_N_MASK)) != 0;
+}
+
+bool is_python_space(char32_t c) {
+  if (u_charType(static_cast<UChar32>(c)) == U_SPACE_SEPARATOR) return true;
+  const UCharDirection d = u_charDirection(static_cast<UChar32>(c));
+  return d == U_WHITE_SPACE_NEUTRAL || d == U_BLOCK_SEPARATOR || d == U_SEGMENT_SEPARATOR;
+}
+
 bool is_rust_regex_word(char32_t c) {
   if (c < 0x80)
     return (c >= '0' && c <= '9') || (c >= 'a' && c <= 'z') || (c >= 'A' && c <= 'Z') || c == '_';

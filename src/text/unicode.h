@@ -32,6 +32,10 @@ std::string utf8_lossy(std::string_view bytes);
 bool is_white_space(char32_t c);      // White_Space property (Rust char::is_whitespace, regex \s)
 bool is_numeric(char32_t c);          // general category Nd | Nl | No (Rust char::is_numeric)
 bool is_rust_regex_word(char32_t c);  // Rust regex crate's Unicode \w
+// Python's str.isalnum (a letter or a number: general category L* or N*) and str.isspace (category Zs or
+// bidirectional class WS, B or S), per character.
+bool is_python_alnum(char32_t c);
+bool is_python_space(char32_t c);
 
 enum class NormalForm { nfc, nfd, nfkc, nfkd };
 std::string normalize(std::string_view s, NormalForm form);

@@ -17,11 +17,9 @@ namespace fs = std::filesystem;
 
 namespace {
 
-// The stand-in PaliGemma tokenizer lives in a hub cache under its real repo id, as upstream loaded it.
-const bool kHubCacheSet = [] {
-  ::setenv("HF_HUB_CACHE", (fs::path(TETHER_FIXTURES_DIR) / "paligemma_hub").c_str(), 1);
-  return true;
-}();
+// The stand-in PaliGemma tokenizer lives in a hub cache under its real repo id, as upstream loaded it. Set for each load
+// (the GR00T cases in the same binary use another hub cache).
+void use_paligemma_hub() { ::setenv("HF_HUB_CACHE", (fs::path(TETHER_FIXTURES_DIR) / "paligemma_hub").c_str(), 1); }
 
 struct Captured {
   Shape shape;
@@ -86,6 +84,7 @@ std::map<std::string, Captured> run_case(const std::string& name, cpu::Precision
   const Json files = Json::parse(oracle.metadata().at("input_files"));
   models::LoadOptions options;
   options.precision = precision;
+  use_paligemma_hub();
   auto policy = policy::Policy::load((dir / "checkpoint").string(), options);
   const auto& spec = policy->spec();
   const Tensor state = oracle.get("input.state");

@@ -1,0 +1,41 @@
+// NVIDIA's GR00T N1.7 (lerobot's GR00TN17 with its N1.7 pre- and post-processing): a Qwen3-VL backbone (Cosmos-Reason2)
+// cut at `select_layer`, a VL self-attention over its features, and a flow-matching action head whose DiT alternates
+// cross-attention to text and image tokens, with per-embodiment state/action encoders and decoder.
+#pragma once
+
+#include <filesystem>
+#include <map>
+#include <memory>
+#include <string>
+#include <vector>
+
+#include "models/family.h"
+
+namespace tether::models {
+
+// The family's descriptor (gr00t_family.cpp): raw NVIDIA checkpoints with config.json model_type "Gr00tN1d7".
+const FamilyDescriptor& gr00t_n17_family();
+
+// One embodiment of a checkpoint, as processor_config.json's modality config, statistics.json and
+// embodiment_id.json describe it.
+struct Gr00tEmbodiment {
+  std::string tag;
+  int64_t id = 0;                    // row of the per-embodiment weights
+  std::vector<std::string> cameras;  // video.modality_keys, in the model's order
+  std::vector<ModalityGroup> state_groups, action_groups;
+  int64_t action_horizon = 0;        // len(action.delta_indices): the rows a chunk keeps
+  // Bounds per group (q01/q99 with use_percentiles, else min/max), concatenated in group order.
+  std::vector<float> state_lo, state_hi, action_lo, action_hi;
+};
+
+// The embodiment `tag` of the checkpoint in `dir` (empty: its only one); errors list the tags it has.
+Gr00tEmbodiment read_gr00t_embodiment(const std::filesystem::path& dir, const std::string& tag);
+
+// lerobot's N1.7 language formalisation: lower case, keep only letters, numbers, whitespace and "_"; an empty
+// instruction is "Perform the task." first.
+std::string gr00t_formalize_language(const std::string& instruction, bool formalize);
+
+std::unique_ptr<Model> load_gr00t_n17(const std::filesystem::path& dir, const Json& config, TensorStore weights,
+                                      const LoadOptions& options);
+
+}  // namespace tether::models

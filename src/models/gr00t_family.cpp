@@ -1,0 +1,83 @@
+// GR00T N1.7's family descriptor: raw NVIDIA checkpoints (config.json model_type "Gr00tN1d7", sharded safetensors,
+// processor_config.json, statistics.json, embodiment_id.json) whose Qwen3-VL backbone files are found by the config's
+// model_name beside the checkpoint or in the hub cache.
+#include <filesystem>
+
+#include "models/backbone.h"
+#include "models/gr00t.h"
+
+namespace tether::models {
+
+namespace fs = std::filesystem;
+
+namespace {
+
+constexpr const char* kSidecars[] = {"processor_config.json", "statistics.json", "embodiment_id.json"};
+
+bool recognises(const CheckpointProbe& p) {
+  if (!p.config.is_object() || p.config.contains("type")) return false;  // "type" marks a lerobot checkpoint
+  return p.config.value("model_type", std::string()) == "Gr00tN1d7";
+}
+
+std::vector<std::string> weight_files(const fs::path& dir) { return TensorStore::files_in(dir.string()); }
+
+TensorStore open_weights(const fs::path& dir) { return TensorStore::open_dir(dir.string()); }
+
+// The state and action bounds of the served embodiment, applied as lerobot's N1.7 pack and decode steps apply them.
+Normalization load_normalization(const fs::path& dir, const Json&, TensorStore&, const LoadOptions& options) {
+  const Gr00tEmbodiment e = read_gr00t_embodiment(dir, options.embodiment);
+  Normalization n;
+  FeatureNorm state{"STATE", NormMode::min_max_clipped, false, {{"min", e.state_lo}, {"max", e.state_hi}}};
+  FeatureNorm action{"ACTION", NormMode::min_max_clipped, false, {{"min", e.action_lo}, {"max", e.action_hi}}};
+  finish_feature("state", state, (dir / "statistics.json").string(), n.warnings);
+  finish_feature("action", action, (dir / "statistics.json").string(), n.warnings);
+  n.input.features["state"] = state;
+  n.output.features["action"] = action;
+  return n;
+}
+
+// The sidecar files are copied; the backbone repository's files travel under the id the config names, which the
+// loader looks for relative to the checkpoint first.
+ExportPlan export_plan(const fs::path& dir, const Json& config) {
+  ExportPlan plan;
+  for (const char* f : kSidecars) plan.copy.push_back(f);
+  const std::string name = config.value("model_name", std::string("nvidia/Cosmos-Reason2-2B"));
+  if (fs::path(name).is_absolute())
+    throw Error(ErrorCode::unsupported, (dir / "config.json").string() +
+                                            ": an absolute model_name cannot be exported (name a hub repo)");
+  const fs::path backbone = find_backbone_dir(dir, name, "model_name in config.json");
+  plan.bundles.push_back({backbone, name, backbone_files(backbone)});
+  plan.config = config;
+  return plan;
+}
+
+// The token embeddings are read a row at a time from the file; the tied lm_head and the final norm are never used.
+bool keeps_copy(const std::string& tensor) {
+  const auto ends_with = [&](const std::string& s) {
+    return tensor.size() >= s.size() && tensor.compare(tensor.size() - s.size(), s.size(), s) == 0;
+  };
+  return !ends_with("lm_head.weight") && !ends_with("embed_tokens.weight") && !ends_with("language_model.norm.weight");
+}
+
+const FamilyDescriptor kGr00tN17 = {
+    .name = "gr00t_n17",
+    .summary = "GR00T N1.7 (NVIDIA): Qwen3-VL backbone (Cosmos-Reason2) cut at select_layer, VL self-attention, "
+               "alternating cross/self-attention DiT with per-embodiment encoders, 4-step flow matching",
+    .recognition = "config.json \"model_type\": \"Gr00tN1d7\" (raw NVIDIA layout)",
+    .recognises = &recognises,
+    .tokenizer = TokenizerKind::byte_level_bpe,
+    .stages = {"preprocess", "vision", "backbone", "denoise"},
+    .missing_camera_rule = "every camera of the embodiment is required (upstream has no rule for a missing one)",
+    .weight_files = &weight_files,
+    .open_weights = &open_weights,
+    .load_normalization = &load_normalization,
+    .load = &load_gr00t_n17,
+    .export_plan = &export_plan,
+    .keeps_copy = &keeps_copy,
+};
+
+}  // namespace
+
+const FamilyDescriptor& gr00t_n17_family() { return kGr00tN17; }
+
+}  // namespace tether::models
