@@ -4,6 +4,7 @@
 #include <iostream>
 
 #include "cli/commands.h"
+#include "cli/observation_args.h"
 #include "cli/registry.h"
 #include "core/json_util.h"
 #include "policy/policy.h"
@@ -21,6 +22,7 @@ namespace {
 
 struct InspectArgs {
   std::string model;
+  std::string embodiment_tag;
   bool json = false;
 };
 
@@ -39,7 +41,7 @@ int run_targets(const InspectArgs& a) {
 }
 
 int run_model(const InspectArgs& a) {
-  auto policy = policy::Policy::load(a.model);
+  auto policy = policy::Policy::load(a.model, load_options("fp32", a.embodiment_tag));
   const auto& s = policy->spec();
   const models::TensorStore f = policy->family().open_weights(a.model);
   int64_t params = 0;
@@ -85,6 +87,7 @@ Verb add_inspect(CLI::App& app) {
   targets->add_flag("--json", args->json, "Print JSON");
   CLI::App* model = sub->add_subcommand("model", "Family, cameras, dimensions, parameters and normalisation of a checkpoint");
   model->add_option("checkpoint", args->model, "Checkpoint directory")->required();
+  add_embodiment_tag_flag(model, args->embodiment_tag);
   model->add_flag("--json", args->json, "Print JSON");
   return {sub, [args, targets] { return targets->parsed() ? run_targets(*args) : run_model(*args); }};
 }

@@ -31,9 +31,16 @@ void add_precision_flag(CLI::App* sub, std::string& value) {
       ->capture_default_str();
 }
 
-models::LoadOptions load_options(const std::string& precision) {
+void add_embodiment_tag_flag(CLI::App* sub, std::string& value) {
+  sub->add_option("--embodiment-tag", value,
+                  "Embodiment served, for checkpoints trained on several (GR00T: a tag of its embodiment_id.json); "
+                  "default: the checkpoint's only one");
+}
+
+models::LoadOptions load_options(const std::string& precision, const std::string& embodiment_tag) {
   models::LoadOptions o;
   o.precision = cpu::parse_precision(precision);
+  o.embodiment = embodiment_tag;
   return o;
 }
 

@@ -26,7 +26,9 @@ std::vector<float> parse_floats(const std::string& text, const std::string& flag
 
 // --precision fp32|bf16, shared by the verbs that load a model.
 void add_precision_flag(CLI::App* sub, std::string& value);
-models::LoadOptions load_options(const std::string& precision);
+// --embodiment-tag TAG, for checkpoints trained on several embodiments (GR00T); empty: the checkpoint's only one.
+void add_embodiment_tag_flag(CLI::App* sub, std::string& value);
+models::LoadOptions load_options(const std::string& precision, const std::string& embodiment_tag = "");
 // What inference actually ran in: "cpu-fp32", "cpu-bf16" (native bf16 GEMM), "cpu-bf16-weights" /
 // "cpu-fp16-weights" (half-size weights widened to fp32 in the kernel).
 std::string inference_mode(const models::ModelSpec& spec);

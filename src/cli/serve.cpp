@@ -62,6 +62,7 @@ void add_serve_flags(CLI::App* sub, ServeFlags& f) {
   sub->add_option("--threads", o.threads, "I/O threads (inference has its own)")->capture_default_str()
       ->check(CLI::Range(1, 256));
   add_precision_flag(sub, f.precision);
+  add_embodiment_tag_flag(sub, f.embodiment_tag);
 
   // Safety wedges (off unless given; order and semantics in the README).
   auto& w = o.wedges;
@@ -202,7 +203,7 @@ int run_server(const std::string& checkpoint_dir, const ServeFlags& flags) {
   options.api_key = read_api_key(flags);
   options.wedges = wedge_options(flags, checkpoint_dir);
   if (options.model_name.empty()) options.model_name = serve::checkpoint_name(checkpoint_dir);
-  const models::LoadOptions load = load_options(flags.precision);
+  const models::LoadOptions load = load_options(flags.precision, flags.embodiment_tag);
   serve::Server server(options, [checkpoint_dir, load] { return serve::load_policy_engine(checkpoint_dir, load); });
   const uint16_t port = server.start();
   // The other transports first: the HTTP line, which clients and scripts wait for, means everything is bound.

@@ -16,6 +16,7 @@ struct ServeFlags {
   serve::ServerOptions options;
   std::string api_key_file;
   std::string precision = "fp32";
+  std::string embodiment_tag;  // GR00T: the embodiment served (--embodiment-tag)
   // Wedge flags that name files or choices; run_server turns them into options.wedges before the socket is bound, so
   // a bad file is an error at start-up.
   std::string embodiment, custom_embodiment, safety_config, fallback_api_key_file, rtc_schedule = "linear";
