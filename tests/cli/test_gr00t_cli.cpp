@@ -1,0 +1,83 @@
+// The verbs on a GR00T N1.7 checkpoint (the oracle fixture) through the real binary: predict and bench with
+// --embodiment-tag, inspect, and the embodiment and observation errors (one line, exit code 2).
+#include <gtest/gtest.h>
+
+#include <filesystem>
+#include <fstream>
+
+#include "cli_runner.h"
+#include "core/json_util.h"
+#include "scratch_dir.h"
+
+namespace fs = std::filesystem;
+
+namespace {
+
+const fs::path kCase = fs::path(TETHER_FIXTURES_DIR) / "gr00t_n17" / "cam2_new";
+const fs::path kHub = fs::path(TETHER_FIXTURES_DIR) / "gr00t_hub";
+
+// The binary with the stand-in backbone hub cache set for the child only; stderr apart.
+CliRun run_gr00t(const std::string& args) {
+  const fs::path err_file = tether::testing::scratch_dir() / "gr00t_cli_err";
+  const std::string cmd =
+      "HF_HUB_CACHE=" + kHub.string() + " " + TETHER_BINARY + " " + args + " 2>" + err_file.string();
+  CliRun r;
+  FILE* pipe = popen(cmd.c_str(), "r");
+  char buf[4096];
+  std::size_t n;
+  while ((n = fread(buf, 1, sizeof buf, pipe)) > 0) r.out.append(buf, n);
+  const int status = pclose(pipe);
+  r.code = WIFEXITED(status) ? WEXITSTATUS(status) : -1;
+  std::ifstream in(err_file);
+  r.err.assign(std::istreambuf_iterator<char>(in), {});
+  fs::remove(err_file);
+  return r;
+}
+
+std::string observation(const std::string& extra = "") {
+  return " --image front=" + (kCase / "inputs" / "front.png").string() +
+         " --image wrist=" + (kCase / "inputs" / "wrist.png").string() +
+         " --state=0.1,0.2,0.3,0.1,0.2,0.3,0.5,0.1,0.2 --instruction 'pick up the cube'" + extra;
+}
+
+int lines(const std::string& s) { return int(std::count(s.begin(), s.end(), '\n')); }
+
+TEST(Gr00tCli, PredictAndBenchServeTheChosenEmbodiment) {
+  const std::string ckpt = (kCase / "checkpoint").string();
+  CliRun r = run_gr00t("predict " + ckpt + observation(" --embodiment-tag new_embodiment --seed 3 --json"));
+  ASSERT_EQ(r.code, 0) << r.err;
+  const auto j = tether::Json::parse(r.out);
+  EXPECT_EQ(j.at("num_actions").get<int>(), 6);  // the checkpoint's action steps, not the model's 8-row horizon
+  EXPECT_EQ(j.at("action_dim").get<int>(), 7);
+  r = run_gr00t("bench " + ckpt + " --embodiment-tag new_embodiment --iterations 2 --warmup 1 --json");
+  ASSERT_EQ(r.code, 0) << r.err;
+  r = run_gr00t("inspect model " + ckpt + " --embodiment-tag libero_sim --json");
+  ASSERT_EQ(r.code, 0) << r.err;
+  EXPECT_EQ(tether::Json::parse(r.out).at("family").get<std::string>(), "gr00t_n17");
+  EXPECT_EQ(tether::Json::parse(r.out).at("cameras"), tether::Json::array({"image"}));
+}
+
+TEST(Gr00tCli, EmbodimentAndObservationErrorsAreOneLine) {
+  const std::string ckpt = (kCase / "checkpoint").string();
+  struct Bad {
+    std::string args, says;
+  };
+  const Bad cases[] = {
+      {observation(), "several embodiments; name one (libero_sim, new_embodiment)"},
+      {observation(" --embodiment-tag robot_x"), "unknown embodiment tag 'robot_x'"},
+      {" --image front=" + (kCase / "inputs" / "front.png").string() +
+           " --state=0.1,0.2,0.3,0.1,0.2,0.3,0.5,0.1,0.2 --instruction x --embodiment-tag new_embodiment",
+       "no image for camera 'wrist'"},
+      {" --image front=" + (kCase / "inputs" / "front.png").string() + " --image wrist=" +
+           (kCase / "inputs" / "wrist.png").string() + " --state=1,2 --instruction x --embodiment-tag new_embodiment",
+       "the model expects 9"},
+  };
+  for (const Bad& b : cases) {
+    const CliRun r = run_gr00t("predict " + ckpt + b.args);
+    EXPECT_EQ(r.code, 2) << b.args;
+    EXPECT_EQ(lines(r.err), 1) << r.err;
+    EXPECT_NE(r.err.find(b.says), std::string::npos) << r.err;
+  }
+}
+
+}  // namespace
