@@ -368,6 +368,7 @@ Gr00tN17::Gr00tN17(const fs::path& dir, const Json& config, TensorStore store, c
   spec_.tokenizer = tokenizer_kind_name(gr00t_n17_family().tokenizer);
   spec_.tokenizer_source = tokenizer_->source;
   spec_.cameras = embodiment_.cameras;
+  spec_.every_camera_required = true;
   spec_.state_key = "state";
   spec_.action_key = "action";
   spec_.state_groups = embodiment_.state_groups;

@@ -60,6 +60,7 @@ struct ModelSpec {
   // A camera may also be named by its key without this prefix ("camera1" for "observation.images.camera1").
   std::string camera_prefix;
   std::string missing_camera_rule;  // one sentence: what happens to a camera a request leaves out
+  bool every_camera_required = false;  // a request must give every camera but the synthetic ones (GR00T)
   std::vector<std::string> stages;  // the model's timed stages in order (StageTimings names)
   std::string tokenizer;            // tokenizer kind: "byte_level_bpe", "sentencepiece"
   std::string tokenizer_source;     // the file its vocabulary was read from (tokenizer.json or tokenizer.model)

@@ -27,6 +27,15 @@ void check_pixels(int64_t height, int64_t width, const std::string& where) {
                               std::to_string(vision::kMaxImagePixels) + "-pixel limit");
 }
 
+// A model that needs every camera (models::ModelSpec::every_camera_required) refuses a request without one.
+void check_cameras(const policy::Observation& obs, const models::ModelSpec& spec) {
+  if (!spec.every_camera_required) return;
+  for (const auto& c : spec.cameras)
+    if (!obs.images.count(c) &&
+        std::find(spec.synthetic_cameras.begin(), spec.synthetic_cameras.end(), c) == spec.synthetic_cameras.end())
+      fail("missing_field", "no image for camera '" + c + "': " + spec.missing_camera_rule);
+}
+
 void check_state(const std::vector<float>& state, const models::ModelSpec& spec) {
   if (int64_t(state.size()) != spec.state_dim)
     fail("invalid_state", "state has " + std::to_string(state.size()) + " values, the model expects " + std::to_string(spec.state_dim));
@@ -295,6 +304,8 @@ ActRequest read_act_request(E root, const models::ModelSpec& spec) {
     }
   }
 
+  check_cameras(obs, spec);
+
   if (const auto episode = present(fields, "episode_id")) {
     if (!episode->is_string()) fail("invalid_field", "episode_id: expected a string, got " + type_name(*episode));
     req.episode_id = std::string(string_value(*episode));
@@ -348,6 +359,7 @@ ActRequest parse_act_request(std::string_view body, const models::ModelSpec& spe
 void check_observation(const policy::Observation& obs, const models::ModelSpec& spec) {
   check_state(obs.state, spec);
   if (obs.images.empty()) fail("missing_field", "an image is required: the request names no camera the model has");
+  check_cameras(obs, spec);
 }
 
 vision::Image raw_rgb_image(const uint8_t* data, int64_t height, int64_t width, const std::string& field) {
