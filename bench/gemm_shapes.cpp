@@ -88,6 +88,34 @@ const GemmShape kPi0Shapes[] = {
     {"expert", "action_time_mlp_out 1024->1024", 50, 1024, 1024, 10},
 };
 
+// GR00T N1.7, 1 camera at 256x256 (256 patches, 64 image tokens, a prompt of about 80 tokens), 4 denoising steps over
+// 41 DiT tokens (the state and 40 actions).
+const GemmShape kGr00tN17Shapes[] = {
+    {"vision", "patch 1536->1024", 256, 1024, 1536, 1},
+    {"vision", "qkv 1024->3072", 256, 3072, 1024, 24},
+    {"vision", "proj 1024->1024", 256, 1024, 1024, 24},
+    {"vision", "fc1 1024->4096", 256, 4096, 1024, 24},
+    {"vision", "fc2 4096->1024", 256, 1024, 4096, 24},
+    {"vision", "merger fc1 4096->4096", 64, 4096, 4096, 4},
+    {"vision", "merger fc2 4096->2048", 64, 2048, 4096, 4},
+    {"text80", "q|k|v 2048->4096", 80, 4096, 2048, 16},
+    {"text80", "o 2048->2048", 80, 2048, 2048, 16},
+    {"text80", "gate/up 2048->12288", 80, 12288, 2048, 16},
+    {"text80", "down 6144->2048", 80, 2048, 6144, 16},
+    {"vl_attn80", "qkv 2048->6144", 80, 6144, 2048, 4},
+    {"vl_attn80", "out 2048->2048", 80, 2048, 2048, 4},
+    {"vl_attn80", "ff1 2048->8192", 80, 8192, 2048, 4},
+    {"vl_attn80", "ff2 8192->2048", 80, 2048, 8192, 4},
+    {"dit", "cross k|v 2048->3072 (M=80)", 80, 3072, 2048, 16},
+    {"dit", "cross q 1536->1536", 41, 1536, 1536, 16 * 4},
+    {"dit", "self qkv 1536->4608", 41, 4608, 1536, 16 * 4},
+    {"dit", "out 1536->1536", 41, 1536, 1536, 32 * 4},
+    {"dit", "ff1 1536->6144", 41, 6144, 1536, 32 * 4},
+    {"dit", "ff2 6144->1536", 41, 1536, 6144, 32 * 4},
+    {"head", "action W2 3072->1536", 40, 1536, 3072, 4},
+    {"head", "action W3 1536->1536", 40, 1536, 1536, 4},
+};
+
 // --cpu-time: process CPU time instead of the wall clock. With --threads 1 it measures the work of one core even
 // while other jobs share the machine (they take wall time, not this process's CPU time).
 bool g_cpu_time = false;
@@ -168,7 +196,7 @@ int main(int argc, char** argv) try {
     else if (!std::strcmp(argv[i], "--cpu-time")) g_cpu_time = true;
     else if (!std::strcmp(argv[i], "--model") && i + 1 < argc) model = argv[++i];
     else {
-      std::fprintf(stderr, "usage: gemm_shapes [--threads N] [--min-batch-ms MS] [--cpu-time] [--model smolvla|pi0|pi05]\n");
+      std::fprintf(stderr, "usage: gemm_shapes [--threads N] [--min-batch-ms MS] [--cpu-time] [--model smolvla|pi0|pi05|gr00t_n17]\n");
       return 2;
     }
   }
@@ -185,13 +213,14 @@ int main(int argc, char** argv) try {
   std::vector<Row> rows;
   std::mt19937 gen(1);
   std::uniform_real_distribution<float> dist(-1.0f, 1.0f);
-  if (model != "smolvla" && model != "pi0" && model != "pi05") {
-    std::fprintf(stderr, "gemm_shapes: --model must be smolvla, pi0 or pi05\n");
+  if (model != "smolvla" && model != "pi0" && model != "pi05" && model != "gr00t_n17") {
+    std::fprintf(stderr, "gemm_shapes: --model must be smolvla, pi0, pi05 or gr00t_n17\n");
     return 2;
   }
   // pi0.5's GEMMs are pi0's (its adaptive norms' projections run once per step, not per token).
   std::vector<GemmShape> shapes(std::begin(kShapes), std::end(kShapes));
-  if (model != "smolvla") shapes.assign(std::begin(kPi0Shapes), std::end(kPi0Shapes));
+  if (model == "pi0" || model == "pi05") shapes.assign(std::begin(kPi0Shapes), std::end(kPi0Shapes));
+  if (model == "gr00t_n17") shapes.assign(std::begin(kGr00tN17Shapes), std::end(kGr00tN17Shapes));
   for (const GemmShape& s : shapes) {
     const int64_t m = s.m, n = s.n, k = s.k;
     std::vector<float> x(std::size_t(m * k)), w(std::size_t(n * k)), ref(std::size_t(m * n)), y(ref.size());

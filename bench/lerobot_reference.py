@@ -41,7 +41,72 @@ def parse_args(argv):
     p.add_argument("--iterations", type=int, default=10)
     p.add_argument("--threads", type=int, default=0, help="torch threads (default: number of cores)")
     p.add_argument("--out", help="write the last action chunk here as tensor 'actions' [1, chunk, action_dim]")
+    p.add_argument("--embodiment-tag", default="", help="GR00T checkpoints: the embodiment (default: the only one)")
     return p.parse_args(argv)
+
+
+def groot_setup(ckpt: Path, raw: dict, images: dict, state, args):
+    """GR00T N1.7 in its raw NVIDIA layout: lerobot's GrootPolicy (GR00TN17 in float32, no autocast) with the N1.7
+    processors; the backbone repository `model_name` names is read from the hub cache. The sampler's noise is drawn
+    inside upstream (torch.randn in get_action_with_features), so it is handed in by replacing torch.randn there."""
+    from lerobot.configs import FeatureType, PolicyFeature
+    from lerobot.policies.factory import make_pre_post_processors
+    from lerobot.policies.groot.configuration_groot import GrootConfig
+    from lerobot.policies.groot.modeling_groot import GrootPolicy
+    from lerobot.policies.groot.processor_groot import GrootN17VLMEncodeStep
+    from safetensors.torch import load_file
+
+    kwargs = json.loads((ckpt / "processor_config.json").read_text())["processor_kwargs"]
+    modalities = kwargs["modality_configs"]
+    tag = args.embodiment_tag or (next(iter(modalities)) if len(modalities) == 1 else None)
+    if tag not in modalities:
+        raise SystemExit(f"--embodiment-tag: one of {sorted(modalities)}")
+    stats = json.loads((ckpt / "statistics.json").read_text())[tag]
+    dim = lambda kind: sum(len(stats[kind][k]["min"]) for k in modalities[tag][kind]["modality_keys"])
+    cams = modalities[tag]["video"]["modality_keys"]
+    images = {k.removeprefix("observation.images."): v for k, v in images.items()}
+    if sorted(images) != sorted(cams):
+        raise SystemExit(f"GR00T embodiment {tag} needs --image for {cams}")
+    feats = {f"observation.images.{c}": PolicyFeature(type=FeatureType.VISUAL, shape=tuple(images[c].shape[1:]))
+             for c in cams}
+    feats["observation.state"] = PolicyFeature(type=FeatureType.STATE, shape=(dim("state"),))
+    horizon = int(raw.get("action_horizon", 40))
+    cfg = GrootConfig(base_model_path=str(ckpt), embodiment_tag=tag, input_features=feats,
+                      output_features={"action": PolicyFeature(type=FeatureType.ACTION, shape=(dim("action"),))},
+                      max_state_dim=int(raw.get("max_state_dim", 132)), max_action_dim=int(raw.get("max_action_dim", 132)),
+                      chunk_size=horizon, n_action_steps=horizon, use_bf16=False, device="cpu", push_to_hub=False)
+    with contextlib.redirect_stdout(io.StringIO()):
+        policy = GrootPolicy.from_pretrained(str(ckpt), config=cfg)
+    policy = policy.to(torch.float32).eval()
+    pre, post = make_pre_post_processors(cfg, pretrained_path=str(ckpt))
+    for s in pre.steps:
+        if isinstance(s, GrootN17VLMEncodeStep):
+            s.model_name = raw.get("model_name", s.model_name)  # lerobot's step names the Cosmos repository itself
+    shape = (1, horizon, cfg.max_action_dim)
+    if args.noise:
+        noise = load_file(args.noise)["noise"].to(torch.float32).reshape(shape)
+    else:
+        noise = torch.randn(shape, generator=torch.Generator().manual_seed(args.seed), dtype=torch.float32)
+    head = policy._groot_model.action_head
+    real_method, real_randn = head.get_action_with_features, torch.randn
+
+    def with_noise(*a, **k):
+        torch.randn = lambda *ra, **rk: noise.clone()
+        try:
+            return real_method(*a, **k)
+        finally:
+            torch.randn = real_randn
+
+    head.get_action_with_features = with_noise
+
+    def step():
+        batch = {f"observation.images.{c}": images[c].mul(255).round().to(torch.uint8) for c in cams}
+        batch["observation.state"] = state.clone()
+        batch["task"] = args.instruction
+        with torch.no_grad():
+            return post(policy.predict_action_chunk(pre(batch)))
+
+    return cfg, step, noise
 
 
 def main(argv=None) -> int:
@@ -72,44 +137,49 @@ def main(argv=None) -> int:
     t0 = time.perf_counter()
     old_cwd = os.getcwd()
     os.chdir(ckpt)  # a relative vlm_model_name resolves against the checkpoint
+    raw = json.loads((ckpt / "config.json").read_text())
     try:
-        cfg = PreTrainedConfig.from_pretrained(str(ckpt))
-        cfg.device = "cpu"
-        policy_class = get_policy_class(cfg.type)
-        with contextlib.redirect_stdout(io.StringIO()):
-            policy = policy_class.from_pretrained(str(ckpt), config=cfg)
-        policy = policy.to(torch.float32).eval()
-        pre, post = make_pre_post_processors(cfg, pretrained_path=str(ckpt))
-        load_s = time.perf_counter() - t0
-
-        missing = [k for k in cfg.image_features if k not in images]
-        if missing:
-            raise SystemExit(f"missing --image for camera(s): {', '.join(missing)}")
-        unknown = [k for k in images if k not in cfg.image_features]
-        if unknown:
-            raise SystemExit(f"checkpoint has no camera(s) {', '.join(unknown)}; it expects {list(cfg.image_features)}")
-        if state.shape[1] != cfg.robot_state_feature.shape[0]:
-            raise SystemExit(f"--state has {state.shape[1]} values, checkpoint expects {cfg.robot_state_feature.shape[0]}")
-
-        if args.noise:
-            noise = load_file(args.noise)["noise"].to(torch.float32)
-            if noise.ndim == 2:
-                noise = noise[None]
+        if "type" not in raw and raw.get("model_type") == "Gr00tN1d7":
+            cfg, step, noise = groot_setup(ckpt, raw, images, state, args)
+            load_s = time.perf_counter() - t0
         else:
-            gen = torch.Generator().manual_seed(args.seed)
-            noise = torch.randn((1, cfg.chunk_size, cfg.max_action_dim), generator=gen, dtype=torch.float32)
-        want = (1, cfg.chunk_size, cfg.max_action_dim)
-        if tuple(noise.shape) != want:
-            raise SystemExit(f"noise has shape {tuple(noise.shape)}, checkpoint needs {want}")
+            cfg = PreTrainedConfig.from_pretrained(str(ckpt))
+            cfg.device = "cpu"
+            policy_class = get_policy_class(cfg.type)
+            with contextlib.redirect_stdout(io.StringIO()):
+                policy = policy_class.from_pretrained(str(ckpt), config=cfg)
+            policy = policy.to(torch.float32).eval()
+            pre, post = make_pre_post_processors(cfg, pretrained_path=str(ckpt))
+            load_s = time.perf_counter() - t0
 
-        def step():
-            batch = dict(images)
-            batch["observation.state"] = state.clone()
-            batch["task"] = args.instruction
-            with torch.no_grad():
-                processed = pre(batch)
-                actions = policy.predict_action_chunk(processed, noise=noise.clone())
-                return post(actions)
+            missing = [k for k in cfg.image_features if k not in images]
+            if missing:
+                raise SystemExit(f"missing --image for camera(s): {', '.join(missing)}")
+            unknown = [k for k in images if k not in cfg.image_features]
+            if unknown:
+                raise SystemExit(f"checkpoint has no camera(s) {', '.join(unknown)}; it expects {list(cfg.image_features)}")
+            if state.shape[1] != cfg.robot_state_feature.shape[0]:
+                raise SystemExit(f"--state has {state.shape[1]} values, checkpoint expects {cfg.robot_state_feature.shape[0]}")
+
+            if args.noise:
+                noise = load_file(args.noise)["noise"].to(torch.float32)
+                if noise.ndim == 2:
+                    noise = noise[None]
+            else:
+                gen = torch.Generator().manual_seed(args.seed)
+                noise = torch.randn((1, cfg.chunk_size, cfg.max_action_dim), generator=gen, dtype=torch.float32)
+            want = (1, cfg.chunk_size, cfg.max_action_dim)
+            if tuple(noise.shape) != want:
+                raise SystemExit(f"noise has shape {tuple(noise.shape)}, checkpoint needs {want}")
+
+            def step():
+                batch = dict(images)
+                batch["observation.state"] = state.clone()
+                batch["task"] = args.instruction
+                with torch.no_grad():
+                    processed = pre(batch)
+                    actions = policy.predict_action_chunk(processed, noise=noise.clone())
+                    return post(actions)
 
         for _ in range(args.warmup):
             step()
@@ -127,7 +197,7 @@ def main(argv=None) -> int:
     rss_kb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
     result = {
         "engine": "lerobot-pytorch",
-        "policy": cfg.type,
+        "policy": getattr(cfg, "type", "groot"),
         "checkpoint": str(ckpt),
         "device": "cpu",
         "dtype": "float32",

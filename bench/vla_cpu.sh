@@ -5,8 +5,9 @@
 # max |diff| between the two action chunks, for Tether at fp32, bf16 and fp16 (which path each took is printed), and
 # the fraction of the machine's measured fp32 GEMM peak.
 # TETHER_MAX_CPU_ISA=AVX2 (with ONEDNN_MAX_CPU_ISA=AVX2) measures the AVX2 paths on any CPU.
-# Usage: bench/vla_cpu.sh --family smolvla|pi0|pi05 [--iterations N] [--warmup N] [--ref-iterations N]
-#        [--checkpoint DIR]    (bench/smolvla_cpu.sh, bench/pi0_cpu.sh and bench/pi05_cpu.sh pass the family)
+# Usage: bench/vla_cpu.sh --family smolvla|pi0|pi05|gr00t_n17 [--iterations N] [--warmup N] [--ref-iterations N]
+#        [--checkpoint DIR]    (bench/smolvla_cpu.sh, bench/pi0_cpu.sh, bench/pi05_cpu.sh and bench/gr00t_cpu.sh pass
+#        the family)
 set -euo pipefail
 cd "$(dirname "$0")/.."
 iterations=5
@@ -32,7 +33,11 @@ case "$family" in
     generate=(pi_oracle.py full-size --family "$family")
     # The PaliGemma tokenizer both engines load by its hub id: the oracle's stand-in, in its hub cache.
     export HF_HUB_CACHE="$PWD/tests/fixtures/paligemma_hub" ;;
-  *) echo "--family must be smolvla, pi0 or pi05" >&2; exit 2 ;;
+  gr00t_n17)
+    generate=(gr00t_oracle.py full-size)
+    # Its Qwen3-VL backbone repository (the oracle's stand-in under the real id, real sizes), as a hub cache.
+    export HF_HUB_CACHE="$cache/gr00t_hub" ;;
+  *) echo "--family must be smolvla, pi0, pi05 or gr00t_n17" >&2; exit 2 ;;
 esac
 checkpoint="${checkpoint:-$cache/checkpoints/$family-full-random}"
 
@@ -43,19 +48,36 @@ if [ "${TETHER_MAX_CPU_ISA:-}" != "" ] && [ "${TETHER_MAX_CPU_ISA^^}" = AVX2 ]; 
   export ONEDNN_MAX_CPU_ISA="${ONEDNN_MAX_CPU_ISA:-AVX2}" MKL_ENABLE_INSTRUCTIONS="${MKL_ENABLE_INSTRUCTIONS:-AVX2}"
 fi
 tools/oracle/setup.sh >/dev/null
+if [ "$family" = gr00t_n17 ] && [ ! -d "$HF_HUB_CACHE/models--nvidia--Cosmos-Reason2-2B" ]; then
+  hub_tmp=$(mktemp -d)
+  tools/oracle/run.sh gr00t_oracle.py hub --out "$hub_tmp" --full-out "$HF_HUB_CACHE"
+  rm -rf "$hub_tmp"
+fi
 [ -f "$checkpoint/config.json" ] || tools/oracle/run.sh "${generate[@]}" --out "$checkpoint"
 
 work=$(mktemp -d)
 trap 'rm -rf "$work"' EXIT
 image=models/demo/sample.png
 instruction="pick up the red cube and put it in the blue bowl"
-cameras=$(python3 -c "import json,sys; c=json.load(open(sys.argv[1])); print(' '.join(k for k,v in c['input_features'].items() if v['type']=='VISUAL'))" "$checkpoint/config.json")
-# A state of the checkpoint's width, in robot units near its statistics' centre.
-state=$(python3 -c "
+# The cameras and a state of the checkpoint's width, in robot units near its statistics' centre: from the lerobot
+# config's features, or (GR00T) from the processor config's only embodiment and its statistics.
+read -r cameras_line state < <(python3 - "$checkpoint" <<'PY'
 import json, sys
-c = json.load(open(sys.argv[1]))
-n = next(v['shape'][0] for v in c['input_features'].values() if v['type'] == 'STATE')
-print(','.join(f'{0.1 * ((i % 7) - 3):.1f}' for i in range(n)))" "$checkpoint/config.json")
+d = sys.argv[1]
+c = json.load(open(d + "/config.json"))
+if "input_features" in c:
+    cams = [k for k, v in c["input_features"].items() if v["type"] == "VISUAL"]
+    n = next(v["shape"][0] for v in c["input_features"].values() if v["type"] == "STATE")
+else:
+    m = json.load(open(d + "/processor_config.json"))["processor_kwargs"]["modality_configs"]
+    tag, emb = next(iter(m.items()))
+    stats = json.load(open(d + "/statistics.json"))[tag]["state"]
+    cams = emb["video"]["modality_keys"]
+    n = sum(len(stats[k]["min"]) for k in emb["state"]["modality_keys"])
+print(",".join(cams), ",".join(f"{0.1 * ((i % 7) - 3):.1f}" for i in range(n)))
+PY
+)
+cameras=${cameras_line//,/ }
 image_args=()
 for cam in $cameras; do image_args+=(--image "$cam=$PWD/$image"); done
 
@@ -65,7 +87,8 @@ import json, sys, torch
 from safetensors.torch import save_file
 cfg = json.load(open(sys.argv[1] + "/config.json"))
 g = torch.Generator().manual_seed(1234)
-save_file({"noise": torch.randn((1, cfg["chunk_size"], cfg["max_action_dim"]), generator=g)}, sys.argv[2])
+rows = cfg["chunk_size"] if "chunk_size" in cfg else cfg["action_horizon"]  # GR00T samples its action horizon
+save_file({"noise": torch.randn((1, rows, cfg["max_action_dim"]), generator=g)}, sys.argv[2])
 PY
 
 echo "$family: lerobot (PyTorch fp32, $(nproc) threads): $ref_iterations runs after $warmup warm-up..." >&2

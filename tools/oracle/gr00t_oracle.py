@@ -1532,7 +1532,7 @@ def load_full_size(out: Path) -> None:
 def cmd_full_size(args) -> None:
     from safetensors.torch import save_file
 
-    out = Path(args.out or CACHE / "checkpoints" / "gr00t-n17-full-random")
+    out = Path(args.out or CACHE / "checkpoints" / "gr00t_n17-full-random")
     if args.check_only:
         check_full_size(out)
         if args.load:
