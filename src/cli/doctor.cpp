@@ -232,8 +232,16 @@ void model_checks(const std::string& dir, std::vector<Check>& out) {
                    "needs about " + gb(need_half) + ", " + gb(avail) + " available",
                    "free memory, or use a machine with more"});
     if (family && has_config) {
-      const models::Normalization n =
-          family->load_normalization(d, read_json_file((d / "config.json").string()), store, models::LoadOptions{});
+      models::Normalization n;
+      try {
+        n = family->load_normalization(d, read_json_file((d / "config.json").string()), store, models::LoadOptions{});
+      } catch (const Error& e) {
+        // A checkpoint with several embodiments (GR00T) has statistics per embodiment: the server picks one.
+        if (e.code() != ErrorCode::invalid_argument) throw;
+        out.push_back({"model", "normalisation", Status::warn, e.what(),
+                       "serve it with --embodiment-tag to check that embodiment's statistics"});
+        return;
+      }
       out.push_back({"model", "normalisation", n.warnings.empty() ? Status::ok : Status::warn,
                      n.warnings.empty() ? "statistics present for every normalised feature"
                                         : [&] {

@@ -57,6 +57,14 @@ TEST(Gr00tCli, PredictAndBenchServeTheChosenEmbodiment) {
   EXPECT_EQ(tether::Json::parse(r.out).at("cameras"), tether::Json::array({"image"}));
 }
 
+TEST(Gr00tCli, DoctorFitsTheModelAndPointsAtTheEmbodimentTag) {
+  const CliRun r = run_gr00t("doctor " + (kCase / "checkpoint").string());
+  EXPECT_EQ(r.code, 0) << r.out << r.err;
+  EXPECT_NE(r.out.find("gr00t_n17"), std::string::npos) << r.out;
+  EXPECT_NE(r.out.find("fits in memory (fp32)"), std::string::npos) << r.out;
+  EXPECT_NE(r.out.find("--embodiment-tag"), std::string::npos) << r.out;
+}
+
 TEST(Gr00tCli, EmbodimentAndObservationErrorsAreOneLine) {
   const std::string ckpt = (kCase / "checkpoint").string();
   struct Bad {
