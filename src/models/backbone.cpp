@@ -42,4 +42,11 @@ std::vector<std::string> backbone_files(const fs::path& dir) {
   return out;
 }
 
+bool vlm_keeps_copy(const std::string& tensor) {
+  const auto ends_with = [&](const std::string& s) {
+    return tensor.size() >= s.size() && tensor.compare(tensor.size() - s.size(), s.size(), s) == 0;
+  };
+  return !ends_with("lm_head.weight") && !ends_with("embed_tokens.weight") && !ends_with("language_model.norm.weight");
+}
+
 }  // namespace tether::models

@@ -14,6 +14,10 @@ namespace tether::models {
 std::filesystem::path find_backbone_dir(const std::filesystem::path& checkpoint_dir, const std::string& name,
                                         const std::string& named_by = "vlm_model_name in config.json");
 
+// Whether a family built on a VLM keeps its own copy of `tensor` (FamilyDescriptor::keeps_copy): not the lm_head (never
+// used), the token embeddings (read a row at a time from the file) or the text model's final norm (never used).
+bool vlm_keeps_copy(const std::string& tensor);
+
 // The backbone files a deployment needs (architecture, tokenizer, processor settings), those present in `dir`.
 std::vector<std::string> backbone_files(const std::filesystem::path& dir);
 

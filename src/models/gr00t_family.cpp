@@ -51,14 +51,6 @@ ExportPlan export_plan(const fs::path& dir, const Json& config) {
   return plan;
 }
 
-// The token embeddings are read a row at a time from the file; the tied lm_head and the final norm are never used.
-bool keeps_copy(const std::string& tensor) {
-  const auto ends_with = [&](const std::string& s) {
-    return tensor.size() >= s.size() && tensor.compare(tensor.size() - s.size(), s.size(), s) == 0;
-  };
-  return !ends_with("lm_head.weight") && !ends_with("embed_tokens.weight") && !ends_with("language_model.norm.weight");
-}
-
 const FamilyDescriptor kGr00tN17 = {
     .name = "gr00t_n17",
     .summary = "GR00T N1.7 (NVIDIA): Qwen3-VL backbone (Cosmos-Reason2) cut at select_layer, VL self-attention, "
@@ -73,7 +65,7 @@ const FamilyDescriptor kGr00tN17 = {
     .load_normalization = &load_normalization,
     .load = &load_gr00t_n17,
     .export_plan = &export_plan,
-    .keeps_copy = &keeps_copy,
+    .keeps_copy = &vlm_keeps_copy,
 };
 
 }  // namespace

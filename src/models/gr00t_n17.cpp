@@ -267,10 +267,10 @@ class Gr00tN17 final : public Model {
   std::vector<backend::Array<float>> deepstack_;
   backend::Array<int64_t> ids_;
   backend::Array<uint8_t> causal_, text_keys_, image_keys_, all_keys_;
-  backend::Array<float> noise_x_, noise_v_, act_in_, act_mid_, act_out_, tokens_, dit_out_, dec_mid_, dec_out_, temb_;
+  backend::Array<float> noise_x_, noise_v_, act_in_, act_mid_, tokens_, dit_out_, dec_mid_, dec_out_, temb_;
   std::vector<CrossKv> kv_;
-  int64_t context_len_ = 0;
-  bool dump_step0_ = false;
+  std::vector<Ptr<const uint8_t>> dit_masks_;
+  std::vector<float> host_sinusoid_;  // the action encoder's time row, reused by every step  // per DiT block: the key mask of this request's context (cross blocks)
 };
 
 void grow(backend::Backend& be, backend::Array<float>& a, int64_t n) {
@@ -578,16 +578,14 @@ Gr00tN17::Prefix Gr00tN17::encode_observation(const ModelInput& in, int64_t item
 
 // lerobot's SinusoidalPositionalEncoding of an integer timestep, float32: [sin(t f_k), cos(t f_k)],
 // f_k = exp(-k * (ln(10000) / half)).
-std::vector<float> action_time_sinusoid(int64_t timestep, int64_t width) {
+void action_time_sinusoid(int64_t timestep, int64_t width, float* out) {
   const int64_t half = width / 2;
   const float c = float(std::log(10000.0)) / float(half);
-  std::vector<float> out(static_cast<std::size_t>(width));
   for (int64_t k = 0; k < half; ++k) {
     const float arg = float(timestep) * std::exp(-float(k) * c);
-    out[std::size_t(k)] = std::sin(arg);
-    out[std::size_t(half + k)] = std::cos(arg);
+    out[k] = std::sin(arg);
+    out[half + k] = std::cos(arg);
   }
-  return out;
 }
 
 void Gr00tN17::velocity(int64_t B, Ptr<const float> x, float time, Ptr<float> v) {
@@ -596,49 +594,34 @@ void Gr00tN17::velocity(int64_t B, Ptr<const float> x, float time, Ptr<float> v)
   // The step index from the time (k / steps), and its bucket as upstream computes it: int((k / steps) * buckets).
   const int64_t k = std::llround(double(time) * double(head_.steps));
   const int64_t bucket = int64_t((double(k) / double(head_.steps)) * double(head_.buckets));
-  const std::string step = "step" + std::to_string(k);
+  const std::string step = dumping() ? "step" + std::to_string(k) : std::string();
 
-  // Action encoder: W1(x), then [W1(x) | sinusoid(bucket)] -> W2 -> swish -> W3, plus the position table.
-  grow(be, act_in_, B * H * 2 * Din);
-  grow(be, act_mid_, B * H * Din);
-  grow(be, act_out_, B * H * Din);
+  // Action encoder: W1(x), then [W1(x) | sinusoid(bucket)] -> W2 -> swish -> W3, plus the position table. The
+  // sinusoid is one row, broadcast into every action row.
   be.linear(*act1_, x, B * H, act_in_.at(), false, 2 * Din);
-  const std::vector<float> sinus = action_time_sinusoid(bucket, Din);
-  std::vector<float> rows(static_cast<std::size_t>(B * H * Din));
-  for (int64_t r = 0; r < B * H; ++r) std::copy(sinus.begin(), sinus.end(), rows.begin() + r * Din);
-  grow(be, act_mid_, B * H * Din);
-  be.upload(rows.data(), B * H * Din, act_mid_.at());
-  be.copy_rows(act_mid_.at(), Din, act_in_.at(Din), 2 * Din, B * H, Din);
+  host_sinusoid_.resize(std::size_t(Din));
+  action_time_sinusoid(bucket, Din, host_sinusoid_.data());
+  be.upload(host_sinusoid_.data(), Din, act_mid_.at());
+  be.copy_rows(act_mid_.at(), 0, act_in_.at(Din), 2 * Din, B * H, Din);
   be.linear(*act2_, act_in_.at(), B * H, act_mid_.at());
   be.activate(act_mid_.at(), B * H * Din, Activation::silu);
   // Tokens: the state token, then the encoded actions (with their positions), per item.
-  grow(be, tokens_, B * T * Din);
   for (int64_t b = 0; b < B; ++b) {
     be.linear(*act3_, act_mid_.at(b * H * Din), H, tokens_.at((b * T + 1) * Din), false, 0);
-    if (dump_step0_ && k == 0 && b == 0)
+    if (dumping() && k == 0 && b == 0)
       dump_array<float>(be, "mid.action_encoder.step0", DType::f32, {1, H, Din}, tokens_.at(Din));
     if (head_.add_pos_embed) be.add(tokens_.at((b * T + 1) * Din), action_pos_.at(), H * Din, tokens_.at((b * T + 1) * Din));
     be.copy_rows(state_tok_.at(b * Din), Din, tokens_.at(b * T * Din), Din, 1, Din);
   }
   // DiT at this time, then the decoder; the velocity is the action rows.
-  grow(be, temb_, B * Din);
-  dit_.time_embedding(be, std::vector<int64_t>(std::size_t(B), bucket), temb_.at());
-  if (dump_step0_) dump_array<float>(be, "mid.temb." + step, DType::f32, {B, Din}, temb_.at());
-  std::vector<Ptr<const uint8_t>> masks;
-  for (int64_t i = 0; i < dit_.layers(); ++i) {
-    if (!dit_.cross(i)) masks.push_back(Ptr<const uint8_t>());
-    else if (!head_.dit.alternate_vl) masks.push_back(all_keys_.at());
-    else masks.push_back(i % (2 * head_.dit.attend_text_every_n_blocks) == 0 ? text_keys_.at() : image_keys_.at());
-  }
-  grow(be, dit_out_, B * T * head_.hidden);
-  dit_.forward(be, tokens_.at(), B, T, temb_.at(), kv_, masks, dit_out_.at());
-  if (dump_step0_ && k == 0) dump_array<float>(be, "mid.dit_out.step0", DType::f32, {B, T, head_.hidden}, dit_out_.at());
-  grow(be, dec_mid_, B * T * head_.hidden);
-  grow(be, dec_out_, B * T * A);
+  dit_.time_embedding(be, bucket, B, temb_.at());
+  if (dumping()) dump_array<float>(be, "mid.temb." + step, DType::f32, {B, Din}, temb_.at());
+  dit_.forward(be, tokens_.at(), B, T, temb_.at(), kv_, dit_masks_, dit_out_.at());
+  if (dumping() && k == 0) dump_array<float>(be, "mid.dit_out.step0", DType::f32, {B, T, head_.hidden}, dit_out_.at());
   be.linear(*dec1_, dit_out_.at(), B * T, dec_mid_.at());
   be.activate(dec_mid_.at(), B * T * head_.hidden, Activation::relu);
   be.linear(*dec2_, dec_mid_.at(), B * T, dec_out_.at());
-  if (dump_step0_) dump_array<float>(be, "mid.decoder_out." + step, DType::f32, {B, T, A}, dec_out_.at());
+  if (dumping()) dump_array<float>(be, "mid.decoder_out." + step, DType::f32, {B, T, A}, dec_out_.at());
   for (int64_t b = 0; b < B; ++b) be.copy_rows(dec_out_.at((b * T + 1) * A), A, v + b * H * A, A, H, A);
 }
 
@@ -682,7 +665,13 @@ ModelOutput Gr00tN17::predict(const std::vector<ModelInput>& batch) {
   be.upload(image_keys.data(), B * T * Lmax, image_keys_.at());
   be.upload(all_keys.data(), B * T * Lmax, all_keys_.at());
   dit_.project_context(be, context_.at(), B, Lmax, kv_);
-  context_len_ = Lmax;
+  // Which keys each DiT block reads: text or image tokens alternately (AlternateVLDiT), else every real token.
+  dit_masks_.clear();
+  for (int64_t i = 0; i < dit_.layers(); ++i) {
+    if (!dit_.cross(i)) dit_masks_.push_back(Ptr<const uint8_t>());
+    else if (!head_.dit.alternate_vl) dit_masks_.push_back(all_keys_.at());
+    else dit_masks_.push_back(i % (2 * head_.dit.attend_text_every_n_blocks) == 0 ? text_keys_.at() : image_keys_.at());
+  }
 
   // The state token: the normalised state, zero-padded, through the embodiment's state encoder.
   const int64_t S = head_.max_state_dim;
@@ -704,7 +693,14 @@ ModelOutput Gr00tN17::predict(const std::vector<ModelInput>& batch) {
   const int64_t H = head_.action_horizon, A = head_.max_action_dim;
   grow(be, noise_x_, B * H * A);
   grow(be, noise_v_, B * H * A);
-  dump_step0_ = dumping();
+  // The denoise loop's buffers, sized before it so that no step allocates.
+  grow(be, act_in_, B * H * 2 * Din);
+  grow(be, act_mid_, B * H * Din);
+  grow(be, tokens_, B * (H + 1) * Din);
+  grow(be, temb_, B * Din);
+  grow(be, dit_out_, B * (H + 1) * head_.hidden);
+  grow(be, dec_mid_, B * (H + 1) * head_.hidden);
+  grow(be, dec_out_, B * (H + 1) * A);
   const Schedule schedule{0.0, 1.0, head_.steps};
   sample_actions(
       be, batch, noise_x_.at(), noise_v_.at(), schedule,

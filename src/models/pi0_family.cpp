@@ -48,15 +48,6 @@ ExportPlan export_plan(const fs::path& dir, const Json& config) {
   return plan;
 }
 
-// The expert's lm_head is never used, and the VLM's token embeddings (or the lm_head standing in for them) are read
-// a row at a time from the file.
-bool keeps_copy(const std::string& tensor) {
-  const auto ends_with = [&](const std::string& s) {
-    return tensor.size() >= s.size() && tensor.compare(tensor.size() - s.size(), s.size(), s) == 0;
-  };
-  return !ends_with("lm_head.weight") && !ends_with("embed_tokens.weight") && !ends_with("language_model.norm.weight");
-}
-
 constexpr const char* kMissingCamera =
     "an absent camera is replaced by a -1 image that is masked out (as upstream); at least one camera must be present";
 
@@ -77,7 +68,7 @@ FamilyDescriptor paligemma_family(const char* name, const char* summary, const c
       .load_normalization = &load_normalization,
       .load = load,
       .export_plan = &export_plan,
-      .keeps_copy = &keeps_copy,
+      .keeps_copy = &vlm_keeps_copy,
   };
 }
 

@@ -127,31 +127,27 @@ void DiTStack::load(backend::Backend& be, Weights& w, const std::string& p, cons
   proj_out_2_ = load_linear(be, w, p + "proj_out_2", cfg.output_dim, D, true, precision);
 }
 
-std::vector<float> diffusers_timestep_sinusoid(int64_t timestep, int64_t channels) {
+void diffusers_timestep_sinusoid(int64_t timestep, int64_t channels, float* out) {
   const int64_t half = channels / 2;
   // exponent = -ln(10000) * arange(half) in float32, divided by (half - 1); exp; times the timestep; [sin | cos] flipped
   // to [cos | sin].
   const float neg_log = float(-std::log(10000.0));
-  std::vector<float> out(static_cast<std::size_t>(channels));
   for (int64_t k = 0; k < half; ++k) {
     const float exponent = (neg_log * float(k)) / float(half - 1);
     const float arg = float(timestep) * std::exp(exponent);
-    out[std::size_t(k)] = std::cos(arg);
-    out[std::size_t(half + k)] = std::sin(arg);
+    out[k] = std::cos(arg);
+    out[half + k] = std::sin(arg);
   }
-  return out;
 }
 
-void DiTStack::time_embedding(backend::Backend& be, const std::vector<int64_t>& buckets, Ptr<float> temb) {
-  const int64_t B = int64_t(buckets.size()), D = cfg_.dim();
-  std::vector<float> sinusoid;
-  for (int64_t t : buckets) {
-    const std::vector<float> e = diffusers_timestep_sinusoid(t, 256);
-    sinusoid.insert(sinusoid.end(), e.begin(), e.end());
-  }
+void DiTStack::time_embedding(backend::Backend& be, int64_t bucket, int64_t B, Ptr<float> temb) {
+  const int64_t D = cfg_.dim();
+  host_sinusoid_.resize(256);
+  diffusers_timestep_sinusoid(bucket, 256, host_sinusoid_.data());
   if (time_in_.size() < B * 256) time_in_ = be.alloc<float>(B * 256);
   if (time_mid_.size() < B * D) time_mid_ = be.alloc<float>(B * D);
-  be.upload(sinusoid.data(), B * 256, time_in_.at());
+  be.upload(host_sinusoid_.data(), 256, time_in_.at());
+  be.copy_rows(time_in_.at(), 0, time_in_.at(256), 256, B - 1, 256);  // every item has the same bucket
   be.linear(*time_1_, time_in_.at(), B, time_mid_.at());
   be.activate(time_mid_.at(), B * D, Activation::silu);
   be.linear(*time_2_, time_mid_.at(), B, temb);

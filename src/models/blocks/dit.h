@@ -73,8 +73,9 @@ class DiTStack {
   // Every cross block's keys/values of `context` [batch, len, cross_dim]: constant over the denoising steps.
   void project_context(backend::Backend& be, backend::Ptr<const float> context, int64_t batch, int64_t len,
                        std::vector<CrossKv>& kv);
-  // The timestep encoder: sinusoid of the integer bucket (cos first), linear, SiLU, linear -> temb [batch, dim].
-  void time_embedding(backend::Backend& be, const std::vector<int64_t>& buckets, backend::Ptr<float> temb);
+  // The timestep encoder for one integer bucket shared by the batch: sinusoid (cos first), linear, SiLU, linear ->
+  // temb [batch, dim].
+  void time_embedding(backend::Backend& be, int64_t bucket, int64_t batch, backend::Ptr<float> temb);
   // x [batch * rows, dim] through every block, then the modulated output norm and projection -> out
   // [batch * rows, output_dim]. masks[i]: block i's key mask [batch, rows, len] (cross blocks; null: none).
   void forward(backend::Backend& be, backend::Ptr<float> x, int64_t batch, int64_t rows, backend::Ptr<const float> temb,
@@ -88,6 +89,7 @@ class DiTStack {
   std::unique_ptr<backend::LinearWeights> time_1_, time_2_, proj_out_1_, proj_out_2_;
   DitScratch scratch_;
   backend::Array<float> silu_temb_, time_in_, time_mid_;
+  std::vector<float> host_sinusoid_;  // [256], reused by every step
 };
 
 // Layer-normed self-attention blocks with affine norms and no mask (GR00T N1.7's vl_self_attention).
@@ -107,6 +109,6 @@ class SelfAttentionStack {
 
 // diffusers' Timesteps(num_channels, flip_sin_to_cos=True, downscale_freq_shift=1) of an integer timestep, in
 // float32: [cos(t f_k), sin(t f_k)], f_k = exp(-ln(10000) k / (half - 1)).
-std::vector<float> diffusers_timestep_sinusoid(int64_t timestep, int64_t channels);
+void diffusers_timestep_sinusoid(int64_t timestep, int64_t channels, float* out);
 
 }  // namespace tether::models
