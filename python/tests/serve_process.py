@@ -51,8 +51,11 @@ class ServeProcess:
         checkpoint: Path = DEMO,
         wait_ready: bool = True,
         start_timeout: float = 60.0,
+        command: Optional[Sequence[str]] = None,
     ) -> None:
-        self.cmd = [str(binary_path()), "serve", str(checkpoint), "--port", "0", *args]
+        # `command`: another verb that ends up serving (`go --model ...`), instead of `serve <checkpoint>`.
+        self.cmd = ([str(binary_path()), *command, "--port", "0", *args] if command is not None
+                    else [str(binary_path()), "serve", str(checkpoint), "--port", "0", *args])
         full_env = dict(os.environ)
         full_env.pop("TETHER_API_KEY", None)
         if env:

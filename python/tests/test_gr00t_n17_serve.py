@@ -1,12 +1,15 @@
 """A GR00T N1.7 checkpoint (the oracle fixture `tests/fixtures/gr00t_n17/cam2_new`) served by the real binary with
 `--embodiment-tag`: the GR00T ZMQ transport reports the embodiment's modality config (its cameras and its state and
 action groups, as the checkpoint's processor_config.json names them), answers get_action per action group, and agrees
-with HTTP /act on the same seed; an observation missing a group or a camera is a clear error."""
+with HTTP /act on the same seed; an observation missing a group or a camera is a clear error. openpi_client, Tether ZMQ
+and tritonclient get the same chunk as /act, and `tether go --model gr00t-n1.7` pulls, exports one embodiment and
+serves it."""
 
 from __future__ import annotations
 
 import base64
 import json
+import os
 
 import numpy as np
 import pytest
@@ -92,3 +95,128 @@ def test_missing_group_or_camera_is_a_clear_error(client):
     err = client.get_action(obs)
     assert err["status"] == 400 and "wrist" in err["error"], err
     assert client.call("ping", requires_input=False)["status"] == "ok"
+
+
+# -- every transport on a GR00T checkpoint ------------------------------------------------------------------------
+
+def http_act(port: int, seed: int) -> np.ndarray:
+    images = {cam: {"data": base64.b64encode(img.tobytes()).decode(), "shape": list(img.shape)}
+              for cam, img in frames().items()}
+    body = json.dumps({"instruction": TASK, "state": STATE["arm"] + STATE["gripper"] + STATE["base"],
+                       "images": images, "seed": seed}).encode()
+    status, _, raw = request(port, "POST", "/act", body, {"Content-Type": "application/json"})
+    assert status == 200, raw[:300]
+    return np.asarray(json.loads(raw)["actions"], np.float32)
+
+
+@pytest.fixture(scope="module")
+def all_transports(tmp_path_factory):
+    layout = tmp_path_factory.mktemp("openpi") / "gr00t_layout.json"
+    layout.write_text(json.dumps({"images": {"cams/front": "front", "cams/wrist": "wrist"},
+                                  "state": ["robot/arm", "robot/gripper", "robot/base"], "prompt": "task"}))
+    proc = ServeProcess(["--embodiment-tag", "new_embodiment", "--openpi-port", "0", "--openpi-layout", str(layout),
+                         "--zmq-port", "0", "--model-name", "gr00t"], env={"HF_HUB_CACHE": str(HUB)},
+                        checkpoint=CASE / "checkpoint")
+    try:
+        yield proc
+    finally:
+        assert proc.stop() == 0, proc.stderr_tail()
+
+
+# openpi_client 0.1.2 keeps the connection outside a `with` block, which websockets 14+ warns about.
+@pytest.mark.filterwarnings("ignore:connect\\(\\) must be used as a context manager:DeprecationWarning")
+def test_openpi_zmq_and_kserve_answer_as_http(all_transports):
+    """The same observation and seed through openpi_client, Tether ZMQ and tritonclient give /act's chunk."""
+    want = http_act(all_transports.port, 5)
+    assert want.shape == (CHUNK, 7)
+
+    websocket_client_policy = pytest.importorskip("openpi_client.websocket_client_policy")
+    policy = websocket_client_policy.WebsocketClientPolicy("127.0.0.1", all_transports.transport_ports["openpi"])
+    obs = {"cams/front": frames()["front"], "cams/wrist": frames()["wrist"],
+           "robot/arm": np.asarray(STATE["arm"]), "robot/gripper": np.asarray(STATE["gripper"]),
+           "robot/base": np.asarray(STATE["base"]), "task": TASK, "seed": 5}
+    got = np.asarray(policy.infer(obs)["actions"], np.float32)
+    np.testing.assert_array_equal(got, want)
+
+    from zmq_clients import Dealer
+    with Dealer(all_transports.transport_ports["zmq"]) as dealer:
+        raw = {cam: {"data": img.tobytes(), "shape": list(img.shape)} for cam, img in frames().items()}
+        dealer.send({"instruction": TASK, "state": STATE["arm"] + STATE["gripper"] + STATE["base"], "images": raw,
+                     "seed": 5})
+        reply = dealer.recv()
+    assert reply["status"] == 200, reply
+    np.testing.assert_array_equal(np.asarray(reply["actions"], np.float32), want)
+
+    tritonclient_http = pytest.importorskip("tritonclient.http")
+    client = tritonclient_http.InferenceServerClient(f"127.0.0.1:{all_transports.port}", network_timeout=120.0)
+    meta = client.get_model_metadata("gr00t")
+    assert {t["name"] for t in meta["inputs"]} >= {"image.front", "image.wrist", "state", "instruction"}
+    tensors = [("instruction", np.array([TASK.encode()], dtype=np.object_), "BYTES"),
+               ("state", np.asarray([STATE["arm"] + STATE["gripper"] + STATE["base"]], np.float32), "FP32"),
+               ("image.front", frames()["front"][None], "UINT8"), ("image.wrist", frames()["wrist"][None], "UINT8"),
+               ("seed", np.asarray([5], np.int64), "INT64")]
+    inputs = []
+    for name, array, datatype in tensors:
+        t = tritonclient_http.InferInput(name, list(array.shape), datatype)
+        t.set_data_from_numpy(array, binary_data=True)
+        inputs.append(t)
+    result = client.infer("gr00t", inputs)
+    np.testing.assert_array_equal(result.as_numpy("actions")[0], want)
+
+
+def test_a_missing_camera_is_refused_on_every_transport(all_transports):
+    from zmq_clients import Dealer
+    with Dealer(all_transports.transport_ports["zmq"]) as dealer:
+        img = frames()["front"]
+        dealer.send({"instruction": TASK, "state": STATE["arm"] + STATE["gripper"] + STATE["base"],
+                     "images": {"front": {"data": img.tobytes(), "shape": list(img.shape)}}})
+        reply = dealer.recv()
+    assert reply["status"] == 400 and reply["error"]["code"] == "missing_field", reply
+    assert "wrist" in reply["error"]["message"]
+    # The server goes on serving.
+    assert http_act(all_transports.port, 6).shape == (CHUNK, 7)
+
+
+# -- tether go --model gr00t-n1.7 from a hub ------------------------------------------------------------------------
+
+def test_go_pulls_exports_and_serves_one_embodiment(tmp_path):
+    """The registry's gr00t-n1.7 served by a local hub: the fixture checkpoint as nvidia/GR00T-N1.7-3B (its config
+    naming the real backbone id) and the stand-in backbone files as nvidia/Cosmos-Reason2-2B."""
+    import shutil
+    import subprocess
+    import sys
+
+    ckpt = tmp_path / "repo"
+    shutil.copytree(CASE / "checkpoint", ckpt)
+    config = json.loads((ckpt / "config.json").read_text())
+    backbone = next((HUB / "models--tether-fixtures--cosmos-reason2-tiny" / "snapshots").iterdir())
+    config["model_name"] = "nvidia/Cosmos-Reason2-2B"
+    (ckpt / "config.json").write_text(json.dumps(config, indent=2))
+    hub = subprocess.Popen([sys.executable, str(REPO / "tests" / "hub" / "fake_hub.py"),
+                            "--repo", f"nvidia/GR00T-N1.7-3B={ckpt}",
+                            "--repo", f"nvidia/Cosmos-Reason2-2B={backbone.resolve()}"],
+                           stdin=subprocess.PIPE, stdout=subprocess.PIPE)
+    try:
+        url = json.loads(hub.stdout.readline())["hub"]
+        env = {"HF_ENDPOINT": url, "HF_HUB_CACHE": str(tmp_path / "hf"), "HF_HOME": str(tmp_path / "hf_home"),
+               "HF_HUB_OFFLINE": "", "TETHER_CACHE": str(tmp_path / "tether")}
+        proc = ServeProcess(["--embodiment-tag", "new_embodiment", "--precision", "fp32"], env=env,
+                            command=["go", "--model", "gr00t-n1.7"], start_timeout=120.0)
+        try:
+            cfg = json.loads(request(proc.port, "GET", "/config")[2])
+            assert cfg["family"] == "gr00t_n17"
+            assert http_act(proc.port, 3).shape == (CHUNK, 7)
+        finally:
+            assert proc.stop() == 0, proc.stderr_tail()
+        err = proc.stderr_tail(20000)
+        assert "is not on disk: pulling it" in err and "export verified" in err, err
+        exports = list((tmp_path / "tether" / "exports").glob("*/gr00t-n1.7-fp32-new_embodiment"))
+        assert len(exports) == 1, err
+        assert json.loads((exports[0] / "embodiment_id.json").read_text()) == {"new_embodiment": 1}
+        # Without a tag the checkpoint's embodiments are listed.
+        out = subprocess.run([str(binary_path()), "go", "--model", "gr00t-n1.7", "--port", "0", "--precision", "fp32"],
+                             env={**os.environ, **env}, capture_output=True, text=True, timeout=120)
+        assert out.returncode == 2 and "--embodiment-tag (libero_sim, new_embodiment)" in out.stderr, out.stderr
+    finally:
+        hub.stdin.close()
+        hub.wait(timeout=10)

@@ -9,6 +9,7 @@
 #include <set>
 
 #include "cli/commands.h"
+#include "cli/observation_args.h"
 #include "cli/registry.h"
 #include "cli/serve_flags.h"
 #include "cli/verify.h"
@@ -25,7 +26,7 @@ namespace fs = std::filesystem;
 namespace {
 
 struct ExportArgs {
-  std::string source, out, precision = "fp32", target, embodiment, custom_embodiment;
+  std::string source, out, precision = "fp32", target, embodiment, custom_embodiment, embodiment_tag;
 };
 
 // The source as a directory: a checkpoint directory, or a registry id whose checkpoint is on disk.
@@ -78,8 +79,10 @@ std::string table(const std::vector<CaseDiff>& diffs) {
 }  // namespace
 
 double export_checkpoint(const std::string& src, const std::string& out_dir, const std::string& precision,
-                         const std::string& target_id, const std::string& embodiment_file) {
-  const ExportArgs a{src, out_dir, precision, target_id, "", ""};
+                         const std::string& target_id, const std::string& embodiment_file,
+                         const std::string& embodiment_tag) {
+  const ExportArgs a{src, out_dir, precision, target_id, "", "", embodiment_tag};
+  const models::LoadOptions source_options = load_options("fp32", embodiment_tag);
   // Validated before anything is written; its joint count is checked against the model once it is loaded.
   const std::optional<policy::Embodiment> embodiment =
       embodiment_file.empty() ? std::nullopt : std::optional(policy::load_embodiment_file(embodiment_file));
@@ -94,16 +97,17 @@ double export_checkpoint(const std::string& src, const std::string& out_dir, con
   if (weights.empty()) throw Error(ErrorCode::not_found, src + ": no weights (" + models::kSingleWeightsFile + " or " +
                                                              models::kShardIndexFile + ")");
   const Json config = read_json_file((src_dir / "config.json").string());
-  const models::ExportPlan plan = family.export_plan(src_dir, config);
+  const models::ExportPlan plan = family.export_plan(src_dir, config, source_options);
   std::vector<std::string> names = {"config.json"};
   names.insert(names.end(), weights.begin(), weights.end());
   names.insert(names.end(), plan.copy.begin(), plan.copy.end());
+  for (const auto& [name, content] : plan.written) names.push_back(name);
   std::sort(names.begin(), names.end());  // a deterministic receipt
   names.erase(std::unique(names.begin(), names.end()), names.end());
   Json source_files = Json::object();
   for (const auto& name : names) source_files[name] = sha256_file_hex((src_dir / name).string());
 
-  auto reference = policy::Policy::load(src);
+  auto reference = policy::Policy::load(src, source_options);
   if (embodiment) runtime::embodiment_action_dim(*embodiment, reference->spec());  // the rule `tether serve` applies
 
   // Write the deployment directory.
@@ -118,6 +122,8 @@ double export_checkpoint(const std::string& src, const std::string& out_dir, con
       fs::copy_file(bundle.from / name, out / bundle.to / name, fs::copy_options::overwrite_existing);
   }
   std::ofstream(out / "config.json", std::ios::binary | std::ios::trunc) << plan.config.dump(4) << "\n";
+  for (const auto& [name, content] : plan.written)
+    std::ofstream(out / name, std::ios::binary | std::ios::trunc) << content.dump(4) << "\n";
   const std::set<std::string> keep(plan.keep_dtype.begin(), plan.keep_dtype.end());
   for (const auto& name : weights) {
     fs::create_directories((out / name).parent_path());
@@ -128,7 +134,7 @@ double export_checkpoint(const std::string& src, const std::string& out_dir, con
   else fs::remove(out / kExportEmbodimentFile);
 
   // Measure the export against the fp32 source (and upstream, when the source is an oracle fixture).
-  auto exported = policy::Policy::load(out.string());
+  auto exported = policy::Policy::load(out.string(), source_options);
   const std::vector<CaseDiff> seeded = compare_seeded(*reference, *exported, 4);
   const std::vector<CaseDiff> oracle = compare_with_oracle(src, *exported);
 
@@ -147,6 +153,7 @@ double export_checkpoint(const std::string& src, const std::string& out_dir, con
                          {"precision", a.precision},
                          {"target", target},
                          {"embodiment", embodiment ? Json(embodiment->name) : Json(nullptr)},
+                         {"embodiment_tag", embodiment_tag.empty() ? Json(nullptr) : Json(embodiment_tag)},
                          {"files", files},
                          {"verification", diffs}};
   std::ofstream(out / "tether_export.json", std::ios::binary | std::ios::trunc) << manifest.dump(2) << "\n";
@@ -156,6 +163,8 @@ double export_checkpoint(const std::string& src, const std::string& out_dir, con
      << "Exported by Tether " << TETHER_VERSION << " (`tether export`), precision **" << a.precision << "**"
      << (target.is_null() ? std::string() : ", target **" + a.target + "**")
      << (embodiment ? ", embodiment **" + embodiment->name + "** (`" + kExportEmbodimentFile + "`, used by `tether serve`)" : "")
+     << (embodiment_tag.empty() ? std::string()
+                                : ", embodiment tag **" + embodiment_tag + "** (the only one whose statistics it holds)")
      << ".\n\n"
      << "## Source\n\n`" << fs::absolute(src).lexically_normal().string() << "`\n\n| file | sha256 |\n|---|---|\n";
   for (auto it = source_files.begin(); it != source_files.end(); ++it) md << "| " << it.key() << " | " << it->get<std::string>() << " |\n";
@@ -186,7 +195,7 @@ int run_export(const ExportArgs& a) {
   const std::string embodiment = !a.custom_embodiment.empty() ? a.custom_embodiment
                                  : a.embodiment.empty()       ? std::string()
                                                               : embodiment_preset_file(a.embodiment);
-  const double worst = export_checkpoint(src, a.out, a.precision, a.target, embodiment);
+  const double worst = export_checkpoint(src, a.out, a.precision, a.target, embodiment, a.embodiment_tag);
   std::printf("exported %s -> %s (%s); max |diff| against the source %.3e; receipt: %s\n", src.c_str(), a.out.c_str(),
               a.precision.c_str(), worst, (fs::path(a.out) / "VERIFICATION.md").string().c_str());
   return kExitOk;
@@ -205,6 +214,7 @@ Verb add_export(CLI::App& app) {
   sub->add_option("--target", args->target, "Deployment target (see tether inspect targets), recorded in the receipt");
   sub->add_option("--embodiment", args->embodiment, "Embodiment preset the export carries (franka, so100, ur5, quadcopter)");
   sub->add_option("--custom-embodiment-config", args->custom_embodiment, "Embodiment JSON file the export carries");
+  add_embodiment_tag_flag(sub, args->embodiment_tag);
   return {sub, [args] { return run_export(*args); }};
 }
 

@@ -30,23 +30,26 @@ fs::path tether_cache() {
   return fs::path(home ? home : "/") / ".cache" / "tether";
 }
 
-// The export for (model, precision) under the Tether cache, rebuilt when it is missing, made by another Tether
+// The export for (model, precision, embodiment tag) under the Tether cache, rebuilt when it is missing, made by another Tether
 // version, or made from another source.
-std::string cached_export(const RegistryEntry& e, const std::string& src, const std::string& precision) {
-  const fs::path dir = tether_cache() / "exports" / TETHER_VERSION / (e.id + "-" + precision);
+std::string cached_export(const RegistryEntry& e, const std::string& src, const std::string& precision,
+                          const std::string& embodiment_tag) {
+  const fs::path dir = tether_cache() / "exports" / TETHER_VERSION /
+                       (e.id + "-" + precision + (embodiment_tag.empty() ? "" : "-" + embodiment_tag));
   const fs::path manifest = dir / "tether_export.json";
   if (fs::exists(manifest)) {
     const Json m = read_json_file(manifest.string());
     const std::string source = m.value("source", Json::object()).value("path", "");
     if (m.value("tether_version", "") == TETHER_VERSION && source == fs::absolute(src).lexically_normal().string() &&
-        m.value("precision", "") == precision) {
+        m.value("precision", "") == precision &&
+        m.value("embodiment_tag", Json(nullptr)) == (embodiment_tag.empty() ? Json(nullptr) : Json(embodiment_tag))) {
       std::fprintf(stderr, "tether go: using the export in %s\n", dir.string().c_str());
       return dir.string();
     }
   }
   std::fprintf(stderr, "tether go: exporting %s (%s) to %s\n", e.id.c_str(), precision.c_str(), dir.string().c_str());
   fs::remove_all(dir);
-  const double worst = export_checkpoint(src, dir.string(), precision, "");
+  const double worst = export_checkpoint(src, dir.string(), precision, "", "", embodiment_tag);
   std::fprintf(stderr, "tether go: export verified, max |diff| against the source %.3e (receipt: %s)\n", worst,
                (dir / "VERIFICATION.md").string().c_str());
   return dir.string();
@@ -98,7 +101,7 @@ Verb add_go(CLI::App& app) {
             flags.precision = choice.precision;
             // KServe's model name: the registry id, not the export directory's name.
             if (flags.options.model_name.empty()) flags.options.model_name = e.id;
-            const std::string dir = cached_export(e, *src, flags.precision);
+            const std::string dir = cached_export(e, *src, flags.precision, flags.embodiment_tag);
             std::fprintf(stderr, "tether go: %s -> %s (%s)\n", e.id.c_str(), dir.c_str(), flags.precision.c_str());
             return run_server(dir, flags);
           }};

@@ -68,8 +68,11 @@ std::string pull_model(const RegistryEntry& entry, const std::string& revision =
 
 // Writes a deployment directory for checkpoint `src` into `out` (see `tether export`); returns the largest measured
 // max |diff| against the fp32 source. `embodiment_file`: an embodiment JSON (preset or custom) travelling with it.
+// `embodiment_tag`: for checkpoints trained on several embodiments (GR00T), the one exported; the export holds only
+// its statistics and loads without naming it.
 double export_checkpoint(const std::string& src, const std::string& out, const std::string& precision,
-                         const std::string& target, const std::string& embodiment_file = "");
+                         const std::string& target, const std::string& embodiment_file = "",
+                         const std::string& embodiment_tag = "");
 
 // Prints the registry as a table (or JSON): id, family, source, parameters, support, local presence, headline
 // published figure, license.

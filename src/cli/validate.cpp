@@ -7,6 +7,7 @@
 #include <fstream>
 
 #include "cli/commands.h"
+#include "cli/observation_args.h"
 #include "cli/verify.h"
 #include "core/hash.h"
 
@@ -77,15 +78,18 @@ int run_validate(const ValidateArgs& a) {
 
   // A damaged export may not even load: that is a failed check, reported with the rest, not a usage error. The
   // reference failing to load (its tokenizer no longer in the hub cache, say) is told apart from the export's failure.
+  // An export of one embodiment of a multi-embodiment checkpoint (GR00T) is compared on that embodiment.
+  const Json tag = manifest.value("embodiment_tag", Json(nullptr));
+  const models::LoadOptions options = load_options("fp32", tag.is_string() ? tag.get<std::string>() : "");
   std::unique_ptr<policy::Policy> ref;
   try {
-    ref = policy::Policy::load(reference);
+    ref = policy::Policy::load(reference, options);
   } catch (const Error& e) {
     add(std::string("load the reference: ") + e.what(), INFINITY, INFINITY, false);
   }
   try {
     if (ref) {
-      auto exported = policy::Policy::load(dir.string());
+      auto exported = policy::Policy::load(dir.string(), options);
       for (const auto& d : compare_seeded(*ref, *exported, 4))
         add(d.name, d.max_abs, d.mean_abs, d.max_abs <= a.threshold);
       for (const auto& d : compare_with_oracle(reference, *exported))

@@ -7,6 +7,7 @@
 
 #include "core/json_util.h"
 #include "core/safetensors.h"
+#include "models/gr00t.h"
 
 namespace tether::cli {
 
@@ -61,10 +62,36 @@ std::vector<CaseDiff> compare_seeded(policy::Policy& reference, policy::Policy& 
   return out;
 }
 
+namespace {
+
+// A GR00T fixture (tools/oracle/gr00t_oracle.py): one observation run with one embodiment; metadata `instruction`,
+// `input_files` (camera -> path under the case) and `embodiment_tag`. Compared only when `candidate` serves that
+// embodiment; lerobot's decode step maps LIBERO's gripper, which is applied to Tether's robot units to compare.
+std::vector<CaseDiff> compare_with_gr00t_oracle(const fs::path& root, const SafeTensorsFile& oracle,
+                                                policy::Policy& candidate) {
+  const auto& meta = oracle.metadata();
+  const auto& spec = candidate.spec();
+  const std::string tag = meta.at("embodiment_tag");
+  if (spec.embodiment != tag) return {};
+  policy::Observation obs;
+  obs.state = oracle.get("input.state").to_f32();
+  obs.instruction = meta.at("instruction");
+  obs.noise = oracle.get("input.noise").to_f32();
+  const Json files = Json::parse(meta.at("input_files"));
+  for (auto cam = files.begin(); cam != files.end(); ++cam)
+    obs.images[cam.key()] = vision::load_image((root / cam->get<std::string>()).string());
+  std::vector<float> got = flat_actions(candidate.predict({obs}));
+  if (models::gr00t_applies_libero_transform(tag)) models::libero_gripper_transform(got, models::action_groups(spec));
+  return {diff_of("oracle-" + root.filename().string(), oracle.get("out.actions").to_f32(), got)};
+}
+
+}  // namespace
+
 std::vector<CaseDiff> compare_with_oracle(const std::string& reference_dir, policy::Policy& candidate) {
   const fs::path root = fs::path(reference_dir).lexically_normal().parent_path();
   if (!fs::exists(root / "oracle.safetensors") || !fs::is_directory(root / "inputs")) return {};
   const SafeTensorsFile oracle = SafeTensorsFile::open((root / "oracle.safetensors").string());
+  if (oracle.metadata().count("embodiment_tag")) return compare_with_gr00t_oracle(root, oracle, candidate);
   const Json instructions = Json::parse(oracle.metadata().at("instructions"));
   const Json files = Json::parse(oracle.metadata().at("input_files"));
   const Tensor state = oracle.get("input.state");

@@ -37,6 +37,9 @@ struct ExportPlan {
   };
   std::vector<Bundle> bundles;
   Json config;  // config.json as the export writes it (bundle references rewritten to their new place)
+  // Files the export writes from these contents instead of copying them (GR00T: the sidecars narrowed to the one
+  // embodiment exported).
+  std::vector<std::pair<std::string, Json>> written;
   // Tensors of the weight files kept in their stored dtype whatever the export precision (statistics a legacy
   // layout keeps among the weights).
   std::vector<std::string> keep_dtype;
@@ -67,8 +70,9 @@ struct FamilyDescriptor {
   // Builds the model from the opened weights.
   std::unique_ptr<Model> (*load)(const std::filesystem::path& dir, const Json& config, TensorStore weights,
                                  const LoadOptions& options) = nullptr;
-  // The files an export carries and its rewritten config.json.
-  ExportPlan (*export_plan)(const std::filesystem::path& dir, const Json& config) = nullptr;
+  // The files an export carries and its rewritten config.json; options.embodiment: the one embodiment exported, for
+  // checkpoints trained on several (empty: all of them).
+  ExportPlan (*export_plan)(const std::filesystem::path& dir, const Json& config, const LoadOptions& options) = nullptr;
   // Whether the loaded model keeps its own copy of a tensor (converted to the compute precision); false for tensors
   // it never reads or reads a row at a time from the mapped file (token embeddings). Null: every tensor. The doctor's
   // memory estimate counts these.

@@ -35,6 +35,12 @@ Gr00tEmbodiment read_gr00t_embodiment(const std::filesystem::path& dir, const st
 // instruction is "Perform the task." first.
 std::string gr00t_formalize_language(const std::string& instruction, bool formalize);
 
+// lerobot's N1.7 decode step, for the `libero_sim` tag only, maps the gripper group g to -sign(2g - 1) after
+// unnormalising (the LIBERO simulator's open/close convention). Tether serves robot units and leaves that mapping to
+// the client; comparisons with lerobot's decoded actions apply it to Tether's. `actions` is [rows, action_dim].
+bool gr00t_applies_libero_transform(const std::string& embodiment_tag);
+void libero_gripper_transform(std::vector<float>& actions, const std::vector<ModalityGroup>& action_groups);
+
 std::unique_ptr<Model> load_gr00t_n17(const std::filesystem::path& dir, const Json& config, TensorStore weights,
                                       const LoadOptions& options);
 

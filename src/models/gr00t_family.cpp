@@ -36,11 +36,23 @@ Normalization load_normalization(const fs::path& dir, const Json&, TensorStore&,
   return n;
 }
 
-// The sidecar files are copied; the backbone repository's files travel under the id the config names, which the
-// loader looks for relative to the checkpoint first.
-ExportPlan export_plan(const fs::path& dir, const Json& config) {
+// The sidecar files are copied, or, when one embodiment is exported, written narrowed to it (its modality config,
+// statistics and weights row), so that the export loads without naming it; the weights keep every row. The backbone
+// repository's files travel under the id the config names, which the loader looks for relative to the checkpoint first.
+ExportPlan export_plan(const fs::path& dir, const Json& config, const LoadOptions& options) {
   ExportPlan plan;
-  for (const char* f : kSidecars) plan.copy.push_back(f);
+  if (options.embodiment.empty()) {
+    for (const char* f : kSidecars) plan.copy.push_back(f);
+  } else {
+    const Gr00tEmbodiment e = read_gr00t_embodiment(dir, options.embodiment);  // an unknown tag lists the known ones
+    Json processor = read_json_file((dir / "processor_config.json").string());
+    Json& modalities = processor.at("processor_kwargs").at("modality_configs");
+    modalities = Json{{e.tag, modalities.at(e.tag)}};
+    const Json stats = read_json_file((dir / "statistics.json").string());
+    plan.written.push_back({"processor_config.json", processor});
+    plan.written.push_back({"statistics.json", Json{{e.tag, stats.at(e.tag)}}});
+    plan.written.push_back({"embodiment_id.json", Json{{e.tag, e.id}}});
+  }
   const std::string name = config.value("model_name", std::string("nvidia/Cosmos-Reason2-2B"));
   if (fs::path(name).is_absolute())
     throw Error(ErrorCode::unsupported, (dir / "config.json").string() +

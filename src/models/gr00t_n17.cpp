@@ -81,6 +81,23 @@ void read_groups(const Json& modality, const Json& stats, const std::string& kin
 
 }  // namespace
 
+bool gr00t_applies_libero_transform(const std::string& embodiment_tag) { return embodiment_tag == "libero_sim"; }
+
+void libero_gripper_transform(std::vector<float>& actions, const std::vector<ModalityGroup>& action_groups) {
+  int64_t start = 0, width = 0, dim = 0;
+  for (const auto& g : action_groups) {
+    if (g.name == "gripper") start = dim, width = g.dim;
+    dim += g.dim;
+  }
+  if (width == 0 || dim == 0) return;
+  for (std::size_t r = 0; r * std::size_t(dim) < actions.size(); ++r)
+    for (int64_t c = start; c < start + width; ++c) {
+      float& g = actions[r * std::size_t(dim) + std::size_t(c)];
+      const float s = 2.0f * g - 1.0f;
+      g = -float((s > 0) - (s < 0));
+    }
+}
+
 Gr00tEmbodiment read_gr00t_embodiment(const fs::path& dir, const std::string& wanted) {
   const Json kwargs = processor_kwargs(dir);
   const std::string where = (dir / "processor_config.json").string();
@@ -93,7 +110,7 @@ Gr00tEmbodiment read_gr00t_embodiment(const fs::path& dir, const std::string& wa
   std::string tag = wanted;
   if (tag.empty()) {
     if (modalities.size() != 1)
-      throw Error(ErrorCode::invalid_argument, dir.string() + " holds several embodiments; name one (" + known + ")");
+      throw Error(ErrorCode::invalid_argument, dir.string() + " holds several embodiments; name the one served with --embodiment-tag (" + known + ")");
     tag = modalities.begin().key();
   }
   if (!modalities.contains(tag))
@@ -367,6 +384,7 @@ Gr00tN17::Gr00tN17(const fs::path& dir, const Json& config, TensorStore store, c
   spec_.missing_camera_rule = gr00t_n17_family().missing_camera_rule;
   spec_.tokenizer = tokenizer_kind_name(gr00t_n17_family().tokenizer);
   spec_.tokenizer_source = tokenizer_->source;
+  spec_.embodiment = embodiment_.tag;
   spec_.cameras = embodiment_.cameras;
   spec_.every_camera_required = true;
   spec_.state_key = "state";

@@ -78,6 +78,8 @@ struct ModelSpec {
   int64_t image_height = 0, image_width = 0;  // what the vision tower receives
   std::string weights_dtype;                   // as stored in the checkpoint
   cpu::Precision precision = cpu::Precision::fp32;  // what the linear layers compute in
+  // The embodiment served, for checkpoints trained on several (GR00T: a tag of embodiment_id.json); empty otherwise.
+  std::string embodiment;
 };
 
 struct LoadOptions {

@@ -248,7 +248,7 @@ std::unique_ptr<Model> load(const fs::path& dir, const Json& config, TensorStore
 
 // FluxVLA's directory as is: the chosen step's weights (converted to the export precision, FluxVLA's names kept so
 // FluxVLA can still load it), its config, statistics and tokenizer, and the trainer's other small files.
-ExportPlan export_plan(const fs::path& dir, const Json& config) {
+ExportPlan export_plan(const fs::path& dir, const Json& config, const LoadOptions&) {
   ExportPlan plan;
   plan.copy.push_back(kStatsFile);
   const FluxvlaModel m = read_fluxvla_model(dir, config);

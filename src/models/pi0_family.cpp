@@ -35,7 +35,7 @@ std::string tokenizer_name(const fs::path& dir) {
 
 // Processor files copied; the tokenizer's files travel with the export under the repo id the preprocessor names
 // (google/paligemma-3b-pt-224/), which is the first place the loader looks, relative to the checkpoint.
-ExportPlan export_plan(const fs::path& dir, const Json& config) {
+ExportPlan export_plan(const fs::path& dir, const Json& config, const LoadOptions&) {
   ExportPlan plan;
   plan.copy = lerobot::processor_files(dir.string());
   const std::string name = tokenizer_name(dir);

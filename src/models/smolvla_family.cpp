@@ -23,7 +23,7 @@ Normalization load_normalization(const fs::path& dir, const Json& config, Tensor
 }
 
 // Processor files copied; the backbone's files travel in vlm/ and the config names that folder.
-ExportPlan export_plan(const fs::path& dir, const Json& config) {
+ExportPlan export_plan(const fs::path& dir, const Json& config, const LoadOptions&) {
   ExportPlan plan;
   plan.copy = lerobot::processor_files(dir.string());
   const fs::path backbone =

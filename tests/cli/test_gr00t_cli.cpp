@@ -1,5 +1,6 @@
 // The verbs on a GR00T N1.7 checkpoint (the oracle fixture) through the real binary: predict and bench with
-// --embodiment-tag, inspect, and the embodiment and observation errors (one line, exit code 2).
+// --embodiment-tag, inspect, export and validate of one embodiment, and the embodiment and observation errors (one
+// line, exit code 2).
 #include <gtest/gtest.h>
 
 #include <filesystem>
@@ -65,13 +66,54 @@ TEST(Gr00tCli, DoctorFitsTheModelAndPointsAtTheEmbodimentTag) {
   EXPECT_NE(r.out.find("--embodiment-tag"), std::string::npos) << r.out;
 }
 
+// An export of one embodiment holds only its statistics (it loads without naming it), is measured against the
+// source and against lerobot's outputs for that embodiment's oracle case, and validates.
+TEST(Gr00tCli, ExportOfOneEmbodimentIsVerifiedAndValidates) {
+  const fs::path root = tether::testing::scratch_dir() / "gr00t_export";
+  fs::remove_all(root);
+  struct Case {
+    std::string fixture, tag;
+  };
+  for (const Case& c : {Case{"cam2_new", "new_embodiment"}, Case{"cam1_libero", "libero_sim"}}) {
+    const fs::path src = fs::path(TETHER_FIXTURES_DIR) / "gr00t_n17" / c.fixture / "checkpoint";
+    const fs::path out = root / c.tag;
+    CliRun r = run_gr00t("export " + src.string() + " -o " + out.string() + " --precision bf16 --embodiment-tag " + c.tag);
+    ASSERT_EQ(r.code, 0) << r.err;
+    const tether::Json manifest = tether::read_json_file((out / "tether_export.json").string());
+    EXPECT_EQ(manifest.at("embodiment_tag").get<std::string>(), c.tag);
+    bool oracle_row = false;
+    for (const auto& d : manifest.at("verification")) {
+      EXPECT_LE(d.at("max_abs").get<double>(), 1e-4) << d.dump();
+      oracle_row |= d.at("case").get<std::string>() == "oracle-" + c.fixture;
+    }
+    EXPECT_TRUE(oracle_row) << manifest.dump();
+    const tether::Json ids = tether::read_json_file((out / "embodiment_id.json").string());
+    EXPECT_EQ(ids.size(), 1u);
+    EXPECT_TRUE(ids.contains(c.tag));
+    r = run_gr00t("inspect model " + out.string() + " --json");  // no tag needed: the export has one embodiment
+    ASSERT_EQ(r.code, 0) << r.err;
+    r = run_gr00t("validate export " + out.string() + " --output-json " + (root / (c.tag + ".json")).string());
+    EXPECT_EQ(r.code, 0) << r.out << r.err;
+    EXPECT_NE(r.out.find("oracle-" + c.fixture), std::string::npos) << r.out;
+  }
+  // The other embodiment is not in the export; without a tag the multi-embodiment source cannot be exported.
+  CliRun r = run_gr00t("predict " + (root / "new_embodiment").string() + observation(" --embodiment-tag libero_sim"));
+  EXPECT_EQ(r.code, 2);
+  EXPECT_NE(r.err.find("unknown embodiment tag 'libero_sim'"), std::string::npos) << r.err;
+  r = run_gr00t("export " + (kCase / "checkpoint").string() + " -o " + (root / "untagged").string());
+  EXPECT_EQ(r.code, 2);
+  EXPECT_NE(r.err.find("--embodiment-tag"), std::string::npos) << r.err;
+  EXPECT_FALSE(fs::exists(root / "untagged"));
+  fs::remove_all(root);
+}
+
 TEST(Gr00tCli, EmbodimentAndObservationErrorsAreOneLine) {
   const std::string ckpt = (kCase / "checkpoint").string();
   struct Bad {
     std::string args, says;
   };
   const Bad cases[] = {
-      {observation(), "several embodiments; name one (libero_sim, new_embodiment)"},
+      {observation(), "several embodiments; name the one served with --embodiment-tag (libero_sim, new_embodiment)"},
       {observation(" --embodiment-tag robot_x"), "unknown embodiment tag 'robot_x'"},
       {" --image front=" + (kCase / "inputs" / "front.png").string() +
            " --state=0.1,0.2,0.3,0.1,0.2,0.3,0.5,0.1,0.2 --instruction x --embodiment-tag new_embodiment",

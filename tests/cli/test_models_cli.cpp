@@ -85,7 +85,7 @@ TEST(ModelsCli, EveryShippedEntryCitesItsFiguresOrSaysWhyNone) {
       EXPECT_FALSE(f["setting"].get<std::string>().empty()) << id;
     }
   }
-  for (const char* id : {"smolvla-demo", "smolvla-base", "pi0-base", "pi05-base", "pi05-libero10-fluxvla", "gr00t-n1.6"})
+  for (const char* id : {"smolvla-demo", "smolvla-base", "pi0-base", "pi05-base", "pi05-libero10-fluxvla", "gr00t-n1.7", "gr00t-n1.6"})
     EXPECT_TRUE(ids.count(id)) << id;
 }
 

@@ -10,6 +10,7 @@
 #include <map>
 
 #include "core/safetensors.h"
+#include "models/gr00t.h"
 #include "policy/policy.h"
 
 using namespace tether;
@@ -93,29 +94,15 @@ TEST_P(Gr00tParity, MatchesUpstream) {
   const fs::path dir = fs::path(TETHER_FIXTURES_DIR) / "gr00t_n17" / GetParam();
   const SafeTensorsFile oracle = SafeTensorsFile::open((dir / "oracle.safetensors").string());
   CaseRun run = run_case(GetParam(), cpu::Precision::fp32);
-  const bool libero = oracle.metadata().at("embodiment_tag") == "libero_sim";
+  const bool libero = models::gr00t_applies_libero_transform(oracle.metadata().at("embodiment_tag"));
   std::printf("  %-24s %-28s %12s\n", ("[" + GetParam() + "]").c_str(), "tensor", "max |diff|");
   int compared = 0;
   for (const std::string& name : oracle.names()) {
     auto it = run.captured.find(name);
     if (it == run.captured.end()) continue;
     std::vector<float> want = oracle.get(name).to_f32(), got = it->second.values;
-    if (name == "out.actions" && libero) {
-      // lerobot's LIBERO decode transform maps the gripper group g to -sign(2g - 1) after unnormalising; Tether
-      // serves robot units and leaves that environment mapping to the client, so it is applied here to compare.
-      int64_t start = 0, width = 0;
-      for (const auto& g : run.action_groups) {
-        if (g.name == "gripper") width = g.dim;
-        else if (width == 0) start += g.dim;
-      }
-      const int64_t dim = it->second.shape.back();
-      for (std::size_t r = 0; r * std::size_t(dim) < got.size(); ++r)
-        for (int64_t c = start; c < start + width; ++c) {
-          float& g = got[r * std::size_t(dim) + std::size_t(c)];
-          const float s = 2.0f * g - 1.0f;
-          g = -float((s > 0) - (s < 0));
-        }
-    }
+    // lerobot's LIBERO decode transform; Tether serves robot units and leaves it to the client (models/gr00t.h).
+    if (name == "out.actions" && libero) models::libero_gripper_transform(got, run.action_groups);
     ASSERT_EQ(want.size(), got.size()) << name;
     double diff = 0;
     for (std::size_t i = 0; i < want.size(); ++i) diff = std::max(diff, std::fabs(double(want[i]) - double(got[i])));
