@@ -115,7 +115,7 @@ def all_transports(tmp_path_factory):
     layout.write_text(json.dumps({"images": {"cams/front": "front", "cams/wrist": "wrist"},
                                   "state": ["robot/arm", "robot/gripper", "robot/base"], "prompt": "task"}))
     proc = ServeProcess(["--embodiment-tag", "new_embodiment", "--openpi-port", "0", "--openpi-layout", str(layout),
-                         "--zmq-port", "0", "--model-name", "gr00t"], env={"HF_HUB_CACHE": str(HUB)},
+                         "--zmq-port", "0", "--model-name", "gr00t", "--rtc"], env={"HF_HUB_CACHE": str(HUB)},
                         checkpoint=CASE / "checkpoint")
     try:
         yield proc
@@ -220,3 +220,21 @@ def test_go_pulls_exports_and_serves_one_embodiment(tmp_path):
     finally:
         hub.stdin.close()
         hub.wait(timeout=10)
+
+
+def test_rtc_keeps_the_delayed_actions_on_the_leftover(all_transports):
+    """GR00T's own RTC: the first inference_delay actions of the new chunk are the leftover's (they stay fixed in
+    the sampler), the rest moves on."""
+    prev = http_act(all_transports.port, 21)
+    leftover = prev[2:]  # 2 actions executed
+    images = {cam: {"data": base64.b64encode(img.tobytes()).decode(), "shape": list(img.shape)}
+              for cam, img in frames().items()}
+    body = json.dumps({"instruction": TASK, "state": STATE["arm"] + STATE["gripper"] + STATE["base"],
+                       "images": images, "seed": 22,
+                       "rtc": {"prev_actions": leftover.tolist(), "inference_delay": 2}}).encode()
+    status, _, raw = request(all_transports.port, "POST", "/act", body, {"Content-Type": "application/json"})
+    assert status == 200, raw[:300]
+    new = np.asarray(json.loads(raw)["actions"], np.float32)
+    np.testing.assert_allclose(new[:2], leftover[:2], atol=1e-5 * max(1.0, float(np.abs(leftover).max())))
+    plain = http_act(all_transports.port, 22)
+    assert np.abs(new[:2] - leftover[:2]).max() < np.abs(plain[:2] - leftover[:2]).max()

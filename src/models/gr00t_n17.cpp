@@ -175,6 +175,7 @@ struct HeadConfig {
   int64_t select_layer = 16, backbone_dim = 2048, hidden = 1024, input_dim = 1536, max_state_dim = 132,
           max_action_dim = 132, action_horizon = 40, num_embodiments = 32, max_seq_len = 1024, steps = 4,
           buckets = 1000;
+  float rtc_ramp_rate = 6.0f;
   bool add_pos_embed = true, use_vlln = true;
   DitConfig dit;
   int64_t vl_layers = 0, vl_heads = 0, vl_head_dim = 0;
@@ -193,6 +194,7 @@ struct HeadConfig {
     h.max_seq_len = json_get_or<int64_t>(c, "max_seq_len", h.max_seq_len, where);
     h.steps = json_get_or<int64_t>(c, "num_inference_timesteps", h.steps, where);
     h.buckets = json_get_or<int64_t>(c, "num_timestep_buckets", h.buckets, where);
+    h.rtc_ramp_rate = float(json_get_or<double>(c, "rtc_ramp_rate", h.rtc_ramp_rate, where));
     h.add_pos_embed = json_get_or<bool>(c, "add_pos_embed", true, where);
     h.use_vlln = json_get_or<bool>(c, "use_vlln", true, where);
     h.model_name = json_get_or<std::string>(c, "model_name", "nvidia/Cosmos-Reason2-2B", where);
@@ -398,6 +400,8 @@ Gr00tN17::Gr00tN17(const fs::path& dir, const Json& config, TensorStore store, c
   spec_.chunk_size = std::min(embodiment_.action_horizon, head_.action_horizon);
   spec_.sampled_chunk = head_.action_horizon;
   spec_.num_steps = head_.steps;
+  spec_.rtc = RtcMethod::inpainting;  // N1.7's own real-time chunking (sampler.h)
+  spec_.rtc_ramp_rate = head_.rtc_ramp_rate;
   spec_.image_height = geometry_.target_h;
   spec_.image_width = geometry_.target_w;
   spec_.precision = precision;
@@ -648,9 +652,6 @@ ModelOutput Gr00tN17::predict(const std::vector<ModelInput>& batch) {
   backend::Backend& be = *be_;
   const double flops_before = be.flops().total();
   const int64_t B = int64_t(batch.size()), D = head_.backbone_dim, Din = head_.input_dim;
-  for (const auto& item : batch)
-    if (!item.denoise.rtc_target.empty())
-      throw Error(ErrorCode::unsupported, "GR00T N1.7: real-time chunking is not supported yet");
   out.timings.set("preprocess", 0);
 
   // The backbone per observation, then one context of the longest prompt (shorter ones padded, the padding masked).

@@ -80,6 +80,9 @@ struct ModelSpec {
   cpu::Precision precision = cpu::Precision::fp32;  // what the linear layers compute in
   // The embodiment served, for checkpoints trained on several (GR00T: a tag of embodiment_id.json); empty otherwise.
   std::string embodiment;
+  // How a request's RTC leftover steers the sampler; rtc_ramp_rate: the inpainting ramp (GR00T's config).
+  RtcMethod rtc = RtcMethod::guidance;
+  float rtc_ramp_rate = 0;
 };
 
 struct LoadOptions {

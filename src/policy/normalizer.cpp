@@ -51,8 +51,9 @@ void Normalizer::apply(const std::string& key, float* x, int64_t n, Direction di
           const float c = v < -1.f ? -1.f : v > 1.f ? 1.f : v;
           v = (c + 1.f) * 0.5f * d + lo;
         } else {
+          // Clipped both ways: the pack step clips, and a decoded action came from a clipped value.
           v = d == 0.f ? 0.f : 2.f * (v - lo) / d - 1.f;
-          if (direction == Direction::normalize) v = v < -1.f ? -1.f : v > 1.f ? 1.f : v;
+          v = v < -1.f ? -1.f : v > 1.f ? 1.f : v;
         }
         break;
       }

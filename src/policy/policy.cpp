@@ -12,8 +12,9 @@ namespace tether::policy {
 namespace {
 
 // The model-side denoise control of one observation. RTC's leftover goes back to the model's normalised space (the
-// inverse of the output unnormalisation), zero-padded to [chunk, max_action_dim], with the RTC prefix weights
-// (execution horizon capped to the leftover length, as upstream does).
+// inverse of the output unnormalisation), then either zero-padded to [chunk, max_action_dim] with the RTC prefix
+// weights (guidance; execution horizon capped to the leftover length, as upstream does) or made the start of the
+// sampler's first rows (inpainting, GR00T).
 models::DenoiseControl denoise_control(const Observation& o, const models::ModelSpec& s, const Normalizer& post) {
   auto fail = [](const std::string& message) { throw Error(ErrorCode::invalid_argument, message); };
   models::DenoiseControl c;
@@ -38,6 +39,11 @@ models::DenoiseControl denoise_control(const Observation& o, const models::Model
 
   std::vector<float> prev = r.prev_actions;
   post.invert_unnormalize(s.action_key, prev.data(), values);
+  if (s.rtc == models::RtcMethod::inpainting) {
+    models::inpainting_rtc(prev, A, s.max_action_dim, s.noise_rows(), r.execution_horizon, r.inference_delay,
+                           s.rtc_ramp_rate, c);
+    return c;
+  }
   c.rtc_target.assign(std::size_t(C * s.max_action_dim), 0.0f);
   for (int64_t i = 0; i < n; ++i)
     std::copy_n(&prev[std::size_t(i * A)], A, &c.rtc_target[std::size_t(i * s.max_action_dim)]);

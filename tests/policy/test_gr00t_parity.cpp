@@ -137,4 +137,68 @@ TEST_P(Gr00tParity, Fp16ErrorIsBounded) { expect_half_precision_bounded(GetParam
 INSTANTIATE_TEST_SUITE_P(Fixtures, Gr00tParity, ::testing::ValuesIn(cases()),
                          [](const auto& info) { return info.param; });
 
+// N1.7's own real-time chunking (inpainting the leftover into the sampler's first rows, tools/oracle/gr00t_rtc_oracle.py)
+// against lerobot driven as its RTC rollout engine drives it: the leftover in robot units, as a client holds it.
+TEST(Gr00tRtc, MatchesLerobotsInpainting) {
+  const fs::path source = fs::path(TETHER_FIXTURES_DIR) / "gr00t_n17" / "cam2_new";
+  const SafeTensorsFile rtc = SafeTensorsFile::open(
+      (fs::path(TETHER_FIXTURES_DIR) / "gr00t_n17_rtc" / "oracle.safetensors").string());
+  const SafeTensorsFile oracle = SafeTensorsFile::open((source / "oracle.safetensors").string());
+  models::LoadOptions options;
+  options.embodiment = rtc.metadata().at("embodiment_tag");
+  use_gr00t_hub();
+  auto policy = policy::Policy::load((source / "checkpoint").string(), options);
+  const auto& spec = policy->spec();
+  policy::Observation o;
+  o.state = oracle.get("input.state").to_f32();
+  o.instruction = oracle.metadata().at("instruction");
+  o.noise = rtc.get("input.noise").to_f32();
+  const Json files = Json::parse(oracle.metadata().at("input_files"));
+  for (auto it = files.begin(); it != files.end(); ++it)
+    o.images[it.key()] = vision::load_image((source / it.value().get<std::string>()).string());
+  std::vector<float> normalized;
+  policy->set_debug_hook([&](const std::string& n, const Tensor& t) {
+    if (n == "out.actions_normalized") normalized = t.to_f32();
+  });
+  auto diff = [](const std::vector<float>& a, const std::vector<float>& b) {
+    EXPECT_EQ(a.size(), b.size());
+    double m = 0;
+    for (std::size_t i = 0; i < std::min(a.size(), b.size()); ++i) m = std::max(m, std::fabs(double(a[i]) - double(b[i])));
+    return m;
+  };
+  policy->predict({o});
+  const std::vector<float> plain = rtc.get("out.no_rtc.actions_normalized").to_f32();
+  std::printf("  [gr00t rtc] %-8s normalised max |diff| %.3e\n", "no RTC", diff(normalized, plain));
+  EXPECT_LE(diff(normalized, plain), 1e-5 * std::max(1.0, max_abs(plain)));
+
+  const std::vector<float> prev = rtc.get("input.prev_actions").to_f32();
+  // The leftover mapped back to model space is what upstream was fed.
+  std::vector<float> back = prev;
+  policy->output_normalizer().invert_unnormalize(spec.action_key, back.data(), int64_t(back.size()));
+  EXPECT_LE(diff(back, rtc.get("input.prev_actions_normalized").to_f32()), 1e-6);
+  int compared = 0;
+  for (const auto& c : Json::parse(rtc.metadata().at("cases"))) {
+    const std::string name = c.at("name");
+    o.rtc = policy::Observation::Rtc{.prev_actions = prev,
+                                     .inference_delay = c.at("inference_delay").get<int>(),
+                                     .execution_horizon = c.at("execution_horizon").get<int>()};
+    // The per-row velocity scale the sampler uses, against upstream's.
+    models::DenoiseControl control;
+    models::inpainting_rtc(back, spec.action_dim, spec.max_action_dim, spec.noise_rows(), o.rtc->execution_horizon,
+                           o.rtc->inference_delay, spec.rtc_ramp_rate, control);
+    EXPECT_LE(diff(control.velocity_scale, c.at("velocity_scale").get<std::vector<float>>()), 1e-7) << name;
+    const policy::Prediction p = policy->predict({o});
+    const std::vector<float> want = rtc.get("out." + name + ".actions").to_f32();
+    const std::vector<float> want_norm = rtc.get("out." + name + ".actions_normalized").to_f32();
+    const double dn = diff(normalized, want_norm), dr = diff(p.items.at(0).actions, want);
+    std::printf("  [gr00t rtc] %-8s normalised max |diff| %.3e, robot units %.3e (max |action| %.2f)\n", name.c_str(),
+                dn, dr, max_abs(want));
+    EXPECT_LE(dn, 1e-5 * std::max(1.0, max_abs(want_norm))) << name;
+    EXPECT_LE(dr, 1e-5 * std::max(1.0, max_abs(want))) << name;
+    EXPECT_GT(diff(want_norm, plain), 1e-3) << name << ": the case must differ from plain sampling";
+    ++compared;
+  }
+  EXPECT_GE(compared, 4);
+}
+
 }  // namespace

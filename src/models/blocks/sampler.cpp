@@ -37,6 +37,17 @@ void check_control(const DenoiseControl& c, int64_t item, const SampleShape& s) 
   const std::string where = "denoise control of item " + std::to_string(item) + ": ";
   if (!std::isfinite(c.adaptive_threshold) || c.adaptive_threshold < 0)
     throw Error(ErrorCode::invalid_argument, where + "adaptive_threshold must be finite and >= 0");
+  if (!c.inpaint_prefix.empty()) {
+    if (int64_t(c.inpaint_prefix.size()) % s.width != 0 || int64_t(c.inpaint_prefix.size()) > s.chunk * s.width)
+      throw Error(ErrorCode::invalid_argument, where + "inpaint_prefix has " + std::to_string(c.inpaint_prefix.size()) +
+                                                   " values, expected whole rows of " + std::to_string(s.width) +
+                                                   ", at most " + std::to_string(s.chunk));
+    if (int64_t(c.velocity_scale.size()) != s.chunk)
+      throw Error(ErrorCode::invalid_argument, where + "velocity_scale has " + std::to_string(c.velocity_scale.size()) +
+                                                   " values, expected " + std::to_string(s.chunk));
+    if (!c.rtc_target.empty())
+      throw Error(ErrorCode::invalid_argument, where + "RTC guidance and inpainting are exclusive");
+  }
   if (c.rtc_target.empty()) return;
   if (int64_t(c.rtc_target.size()) != s.chunk * s.width)
     throw Error(ErrorCode::invalid_argument, where + "rtc_target has " + std::to_string(c.rtc_target.size()) +
@@ -112,6 +123,39 @@ float rtc_guidance_weight(float tau, float max_guidance_weight) {
   return std::min(nan_to_num(c * inv_r2, max_guidance_weight), max_guidance_weight);
 }
 
+void inpainting_rtc(const std::vector<float>& leftover, int64_t action_dim, int64_t width, int64_t chunk,
+                    int execution_horizon, int inference_delay, float ramp_rate, DenoiseControl& c) {
+  int64_t rows = std::min<int64_t>(int64_t(leftover.size()) / action_dim, std::max(execution_horizon, 0));
+  rows = std::min(rows, chunk);
+  // The engine pads a short leftover with zero rows and upstream drops trailing all-zero rows, so a real row that
+  // is exactly zero at the end goes as well.
+  while (rows > 0) {
+    float sum = 0;
+    for (int64_t j = 0; j < action_dim; ++j) sum += std::fabs(leftover[std::size_t((rows - 1) * action_dim + j)]);
+    if (sum > 0) break;
+    --rows;
+  }
+  c.inpaint_prefix.clear();
+  c.velocity_scale.clear();
+  if (rows == 0) return;
+  c.inpaint_prefix.assign(std::size_t(rows * width), 0.0f);
+  for (int64_t r = 0; r < rows; ++r)
+    std::copy_n(&leftover[std::size_t(r * action_dim)], action_dim, &c.inpaint_prefix[std::size_t(r * width)]);
+  const int64_t frozen = std::clamp<int64_t>(inference_delay, 0, rows), ramped = rows - frozen;
+  c.velocity_scale.assign(std::size_t(chunk), 1.0f);
+  for (int64_t r = 0; r < frozen; ++r) c.velocity_scale[std::size_t(r)] = 0.0f;
+  // torch.linspace(0, 1, m) in float32: start + step * i for the first half, end - step * (m - 1 - i) for the rest.
+  const int64_t m = ramped + 2;
+  const float step = 1.0f / float(m - 1);
+  std::vector<float> ramp(static_cast<std::size_t>(m));
+  for (int64_t i = 0; i < m; ++i) {
+    const float s = i < m / 2 ? step * float(i) : 1.0f - step * float(m - 1 - i);
+    ramp[std::size_t(i)] = 1.0f - std::exp(-ramp_rate * s);
+  }
+  const float last = std::max(ramp.back(), 1e-8f);
+  for (int64_t r = 0; r < ramped; ++r) c.velocity_scale[std::size_t(frozen + r)] = ramp[std::size_t(r + 1)] / last;
+}
+
 std::vector<int> euler_sample(backend::Backend& be, backend::Ptr<float> x, backend::Ptr<float> v,
                               const SampleShape& s, const Schedule& schedule,
                               const std::vector<DenoiseControl>& controls, const VelocityFn& velocity,
@@ -140,6 +184,10 @@ std::vector<int> euler_sample(backend::Backend& be, backend::Ptr<float> x, backe
     be.upload(controls[b].rtc_target.data(), n, targets.at(b * n));
     be.upload(controls[b].rtc_weights.data(), s.chunk, weights.at(b * s.chunk));
   }
+  // Inpainting RTC: the leftover rows replace the noise they start from.
+  for (int64_t b = 0; b < B; ++b)
+    if (!controls[b].inpaint_prefix.empty())
+      be.upload(controls[b].inpaint_prefix.data(), int64_t(controls[b].inpaint_prefix.size()), x + b * n);
   std::vector<int> steps(std::size_t(B), 0);
   std::vector<uint8_t> done(std::size_t(B), 0);
   int64_t active = B;
@@ -155,6 +203,10 @@ std::vector<int> euler_sample(backend::Backend& be, backend::Ptr<float> x, backe
       const DenoiseControl& c = controls[b];
       const backend::Ptr<float> xb = x + b * n, vb = v + b * n;
       ++steps[b];
+      // Upstream steps x + (dt * v) * scale; v * scale first is the same bits whenever dt is a power of two (the
+      // released 4 steps), and at most an ulp apart otherwise.
+      for (std::size_t r = 0; r < c.velocity_scale.size(); ++r)
+        if (c.velocity_scale[r] != 1.0f) be.scale(vb + int64_t(r) * s.width, s.width, c.velocity_scale[r]);
       if (!c.rtc_target.empty())
         be.rtc_guide(xb, vb, targets.at(b * n), weights.at(b * s.chunk), s.chunk, s.width, float(time),
                      rtc_guidance_weight(float(1.0 - time), c.rtc_max_guidance_weight));

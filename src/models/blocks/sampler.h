@@ -37,7 +37,23 @@ struct DenoiseControl {
   // zero-padded to [chunk, width]; weights [chunk] from rtc_prefix_weights().
   std::vector<float> rtc_target, rtc_weights;
   float rtc_max_guidance_weight = 10;
+  // RTC by inpainting (GR00T N1.7's own; empty prefix: off): x starts from these [rows, width] leftover rows instead
+  // of noise, and each row's velocity is scaled by velocity_scale [chunk] (0 keeps a row as it started).
+  std::vector<float> inpaint_prefix, velocity_scale;
 };
+
+// How a family's sampler follows the previous chunk (ModelSpec::rtc): lerobot's RTCProcessor guidance, or the
+// inpainting GR00T N1.7 does natively.
+enum class RtcMethod { guidance, inpainting };
+
+// GR00T N1.7's real-time chunking as lerobot's rollout engine drives it (`GrootPolicy._prepare_n1_7_rtc_inputs`,
+// `GR00TN17ActionHead.get_action_with_features`): the leftover's first min(n, execution_horizon) rows (normalised,
+// [n, action_dim]), trailing all-zero rows dropped, are x's first rows (padding dims 0); the first
+// min(inference_delay, rows) of them stay fixed (scale 0), the rest ramp in with r = 1 - exp(-rate * s) over
+// s = linspace(0, 1, m + 2), r / r[-1], r[1..m], in float32; later rows scale 1. An all-zero leftover leaves the
+// control off.
+void inpainting_rtc(const std::vector<float>& leftover, int64_t action_dim, int64_t width, int64_t chunk,
+                    int execution_horizon, int inference_delay, float ramp_rate, DenoiseControl& control);
 
 // What a deployment chooses for the sampler (flags; the serve wedges only set these): adaptive stopping and RTC
 // guidance. Per request they become a DenoiseControl.
