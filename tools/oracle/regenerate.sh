@@ -34,5 +34,8 @@ echo "== FluxVLA pi0.5 run directories (read the pi05 cam1_quantiles_bins and va
 echo "== GR00T N1.7 fixtures (the stand-in Qwen3-VL backbone repository's hub cache first)"
 "$here/run.sh" "$here/gr00t_oracle.py" hub --tiny-only
 "$here/run.sh" "$here/gr00t_oracle.py" fixtures
+"$here/run.sh" "$here/gr00t_rtc_oracle.py"  # GR00T N1.7 real-time chunking (reads the cam2_new case)
+echo "== GR00T N1.6 fixtures (tiny raw checkpoint, stand-in Eagle directory, block and end-to-end oracles)"
+"$here/run.sh" "$here/gr00t_n16_oracle.py"
 echo "== demo policy"
 "$here/run.sh" "$here/smolvla_oracle.py" demo --out "$root/models/demo"
