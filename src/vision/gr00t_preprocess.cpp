@@ -54,7 +54,7 @@ struct AaAxis {
   int taps = 0;
   unsigned precision = 0;
   std::vector<int> start, count;
-  std::vector<int16_t> w;  // out * taps
+  std::vector<int32_t> w;  // out * taps (int16 range for torch's kernel)
 };
 
 AaAxis bicubic_aa_axis(int in, int out) {
@@ -102,17 +102,59 @@ AaAxis bicubic_aa_axis(int in, int out) {
   return a;
 }
 
+// Pillow's bicubic filter (a = -0.5) in its own operation order (Resample.c bicubic_filter).
+double pil_bicubic(double x) {
+  constexpr double a = -0.5;
+  if (x < 0.0) x = -x;
+  if (x < 1.0) return ((a + 2.0) * x - (a + 3.0)) * x * x + 1;
+  if (x < 2.0) return (((x - 5) * x + 8) * x - 4) * a;
+  return 0.0;
+}
+
+// Pillow's precompute_coeffs + normalize_coeffs_8bpc: the same support rule as torch's, weights normalised in
+// double and quantised to int32 at a fixed 22 bits (PRECISION_BITS = 32 - 8 - 2).
+AaAxis pil_bicubic_axis(int in, int out) {
+  AaAxis a;
+  const double scale = double(in) / double(out);
+  const double filterscale = std::max(scale, 1.0);
+  const double support = 2.0 * filterscale;
+  a.taps = int(std::ceil(support)) * 2 + 1;
+  a.precision = 22;
+  a.start.resize(out);
+  a.count.resize(out);
+  a.w.assign(size_t(out) * a.taps, 0);
+  std::vector<double> k(size_t(a.taps));
+  for (int xx = 0; xx < out; ++xx) {
+    const double center = (xx + 0.5) * scale;
+    const double ss = 1.0 / filterscale;
+    const int xmin = std::max(int(center - support + 0.5), 0);
+    const int xmax = std::min(int(center + support + 0.5), in) - xmin;
+    double ww = 0.0;
+    for (int x = 0; x < xmax; ++x) {
+      k[size_t(x)] = pil_bicubic((x + xmin - center + 0.5) * ss);
+      ww += k[size_t(x)];
+    }
+    for (int x = 0; x < xmax; ++x) {
+      const double v = (ww != 0.0 ? k[size_t(x)] / ww : k[size_t(x)]) * double(1 << 22);
+      a.w[size_t(xx) * a.taps + x] = v < 0 ? int32_t(-0.5 + v) : int32_t(0.5 + v);
+    }
+    a.start[xx] = xmin;
+    a.count[xx] = xmax;
+  }
+  return a;
+}
+
 // One output sample of a separable pass: the source samples p[k * step], k in [start, start + count), weighted in
 // fixed point, rounded half up and clamped to uint8 (torch rounds each pass, so the vertical pass reads uint8).
 inline uint8_t aa_sample(const uint8_t* p, int64_t step, const AaAxis& a, int i) {
-  const int16_t* w = a.w.data() + size_t(i) * a.taps;
+  const int32_t* w = a.w.data() + size_t(i) * a.taps;
   int32_t acc = int32_t(1) << (a.precision - 1);  // the +0.5 of round half up
   for (int j = 0; j < a.count[i]; ++j) acc += int32_t(p[int64_t(a.start[i] + j) * step]) * w[j];
   return uint8_t(std::clamp(acc >> a.precision, 0, 255));
 }
 
-Image resize_horizontal(const Image& img, int out_w) {
-  const AaAxis a = bicubic_aa_axis(img.width, out_w);
+Image resize_horizontal(const Image& img, int out_w, bool pil) {
+  const AaAxis a = pil ? pil_bicubic_axis(img.width, out_w) : bicubic_aa_axis(img.width, out_w);
   Image out = blank(img.height, out_w);
   for (int y = 0; y < img.height; ++y) {
     const uint8_t* row = img.rgb.data() + int64_t(y) * img.width * 3;
@@ -123,8 +165,8 @@ Image resize_horizontal(const Image& img, int out_w) {
   return out;
 }
 
-Image resize_vertical(const Image& img, int out_h) {
-  const AaAxis a = bicubic_aa_axis(img.height, out_h);
+Image resize_vertical(const Image& img, int out_h, bool pil) {
+  const AaAxis a = pil ? pil_bicubic_axis(img.height, out_h) : bicubic_aa_axis(img.height, out_h);
   Image out = blank(out_h, img.width);
   const int64_t stride = int64_t(img.width) * 3;
   for (int y = 0; y < out_h; ++y) {
@@ -218,8 +260,19 @@ Image resize_bicubic_antialias(const Image& img, int out_h, int out_w) {
                                                  std::to_string(out_h) + "x" + std::to_string(out_w));
   if (out_h == img.height && out_w == img.width) return img;
   // torch runs the width pass first and rounds it to uint8 before the height pass.
-  const Image widened = out_w != img.width ? resize_horizontal(img, out_w) : img;
-  return out_h != img.height ? resize_vertical(widened, out_h) : widened;
+  const Image widened = out_w != img.width ? resize_horizontal(img, out_w, false) : img;
+  return out_h != img.height ? resize_vertical(widened, out_h, false) : widened;
+}
+
+Image resize_bicubic_pil(const Image& img, int out_h, int out_w) {
+  check_image(img, "resize_bicubic_pil");
+  if (out_h <= 0 || out_w <= 0)
+    throw Error(ErrorCode::invalid_argument, "resize_bicubic_pil: empty output size " + std::to_string(out_h) + "x" +
+                                                 std::to_string(out_w));
+  if (out_h == img.height && out_w == img.width) return img;  // Image.resize to the same size is a copy
+  // Pillow's ImagingResampleInner: the horizontal pass first, rounded to uint8, then the vertical one.
+  const Image widened = out_w != img.width ? resize_horizontal(img, out_w, true) : img;
+  return out_h != img.height ? resize_vertical(widened, out_h, true) : widened;
 }
 
 // ---------------------------------------------------------------- public: GR00T geometry
@@ -454,6 +507,91 @@ PixelPatches qwen_image_process(const Image& img, const QwenImageConfig& cfg) {
 PixelPatches gr00t_preprocess_frame(const Image& frame, const Gr00tImageGeometry& geometry,
                                     const QwenImageConfig& qwen) {
   return qwen_image_process(gr00t_geometry(frame, geometry), qwen);
+}
+
+}  // namespace tether::vision
+
+// ---------------------------------------------------------------- GR00T N1.6 (Eagle)
+
+namespace tether::vision {
+
+Gr00tImageGeometry Gr00tImageGeometry::from_n16_processor_kwargs(const Json& kwargs, const std::string& where) {
+  if (!kwargs.is_object()) throw Error(ErrorCode::format, where + ": processor_kwargs is not an object");
+  auto flag = [&](const char* key) {
+    auto it = kwargs.find(key);
+    return it != kwargs.end() && it->is_boolean() && it->get<bool>();
+  };
+  auto pair = [&](const char* key) -> std::optional<std::array<int, 2>> {
+    auto it = kwargs.find(key);
+    if (it == kwargs.end() || !it->is_array() || it->size() != 2) return std::nullopt;
+    return std::array{json_int((*it)[0], key, where), json_int((*it)[1], key, where)};
+  };
+  if (!flag("use_albumentations"))
+    throw Error(ErrorCode::unsupported, where + ": use_albumentations false (Isaac-GR00T's torchvision path) is not "
+                                                "supported for N1.6; released checkpoints use the albumentations path");
+  Gr00tImageGeometry g;
+  g.use_albumentations = true;
+  g.letter_box = flag("letter_box_transform");
+  const auto target = pair("image_target_size");
+  const auto crop = pair("image_crop_size");
+  // Isaac-GR00T: E = shortest_image_edge or image_target_size[0]; f = crop_fraction or crop / target.
+  if (auto it = kwargs.find("shortest_image_edge"); it != kwargs.end() && !it->is_null())
+    g.shortest_edge = json_int(*it, "shortest_image_edge", where);
+  if (g.shortest_edge && *g.shortest_edge == 0) g.shortest_edge.reset();
+  if (!g.shortest_edge) {
+    if (!target) throw Error(ErrorCode::format, where + ": neither shortest_image_edge nor image_target_size is set");
+    g.shortest_edge = (*target)[0];
+  }
+  g.target_h = g.target_w = *g.shortest_edge;
+  g.crop_size.reset();
+  if (auto it = kwargs.find("crop_fraction"); it != kwargs.end() && !it->is_null()) {
+    if (!it->is_number()) throw Error(ErrorCode::format, where + ": field 'crop_fraction' is not a number");
+    g.crop_fraction = it->get<double>();
+  } else if (target && crop) {
+    g.crop_fraction = double((*crop)[0]) / double((*target)[0]);
+  }
+  check_geometry(g);
+  g.effective_crop_fraction();
+  return g;
+}
+
+ResizedSize eagle_smart_resize(int h, int w) {
+  constexpr int64_t factor = 28, min_pixels = 4 * 28 * 28, max_pixels = 4096 * 28 * 28, max_side = 500 * 14;
+  if (h <= 0 || w <= 0)
+    throw Error(ErrorCode::invalid_argument,
+                "smart_resize: empty image (" + std::to_string(h) + "x" + std::to_string(w) + ")");
+  const double ratio = double(std::max(h, w)) / double(std::min(h, w));
+  if (ratio > 200)
+    throw Error(ErrorCode::invalid_argument, "smart_resize: absolute aspect ratio must be smaller than 200, got " +
+                                                 std::to_string(ratio) + " (" + std::to_string(h) + "x" +
+                                                 std::to_string(w) + ")");
+  int64_t hb = std::min(std::max(factor, py_round(double(h) / double(factor)) * factor), max_side);
+  int64_t wb = std::min(std::max(factor, py_round(double(w) / double(factor)) * factor), max_side);
+  if (hb * wb > max_pixels) {
+    // From the rounded size, floored.
+    const double beta = std::sqrt(double(hb * wb) / double(max_pixels));
+    hb = int64_t(std::floor(double(hb) / beta / double(factor))) * factor;
+    wb = int64_t(std::floor(double(wb) / beta / double(factor))) * factor;
+  } else if (hb * wb < min_pixels) {
+    // From the original size, rounded up.
+    const double beta = std::sqrt(double(min_pixels) / double(int64_t(h) * w));
+    hb = int64_t(std::ceil(double(h) * beta / double(factor))) * factor;
+    wb = int64_t(std::ceil(double(w) * beta / double(factor))) * factor;
+  }
+  return {int(hb), int(wb)};
+}
+
+EagleFrame eagle_preprocess_frame(const Image& frame, const Gr00tImageGeometry& geometry) {
+  EagleFrame f;
+  const Image shaped = gr00t_geometry_albumentations(frame, geometry);
+  const ResizedSize s = eagle_smart_resize(shaped.height, shaped.width);
+  f.image = resize_bicubic_pil(shaped, s.height, s.width);
+  const int64_t H = f.image.height, W = f.image.width, plane = H * W;
+  f.pixels.resize(std::size_t(3 * plane));
+  // transformers' fused rescale + normalise: mean and std 0.5 * 255 = 127.5, one subtraction and one division.
+  for (int64_t i = 0; i < plane; ++i)
+    for (int c = 0; c < 3; ++c) f.pixels[std::size_t(c * plane + i)] = (float(f.image.rgb[std::size_t(i * 3 + c)]) - 127.5f) / 127.5f;
+  return f;
 }
 
 }  // namespace tether::vision

@@ -31,6 +31,10 @@ namespace tether::vision {
 // largest precision that fits, each output rounded half up and clamped. Same size: returned unchanged.
 Image resize_bicubic_antialias(const Image& img, int out_h, int out_w);
 
+// Pillow's Image.resize((out_w, out_h), BICUBIC) on an RGB image: the same separable scheme with Pillow's own
+// cubic formula and int32 weights at a fixed 22 bits. Same size: returned unchanged (Pillow copies).
+Image resize_bicubic_pil(const Image& img, int out_h, int out_w);
+
 // ---------------------------------------------------------------- GR00T geometry
 
 // The image fields of an N1.7 checkpoint's processor_config.json ("processor_kwargs").
@@ -50,6 +54,9 @@ struct Gr00tImageGeometry {
   // lerobot's reading of processor_kwargs: when image_target_size is absent, the N1.7 defaults apply (target 256,
   // crop 230) and shortest_image_edge / crop_fraction are ignored; non-boolean flags count as false.
   static Gr00tImageGeometry from_processor_kwargs(const Json& kwargs, const std::string& where);
+  // Isaac-GR00T's N1.6 reading: E = shortest_image_edge, else image_target_size[0]; f = crop_fraction, else
+  // image_crop_size[0] / image_target_size[0]; only the albumentations path (use_albumentations true) is supported.
+  static Gr00tImageGeometry from_n16_processor_kwargs(const Json& kwargs, const std::string& where);
 };
 
 // Pads to a square with black, the top / left getting half the padding (rounded down). Square images are copied.
@@ -126,5 +133,21 @@ PixelPatches qwen_image_process(const Image& img, const QwenImageConfig& cfg);
 // GR00T geometry then the Qwen2-VL processor: what lerobot feeds the N1.7 backbone for one frame.
 PixelPatches gr00t_preprocess_frame(const Image& frame, const Gr00tImageGeometry& geometry,
                                     const QwenImageConfig& qwen);
+
+// ---------------------------------------------------------------- GR00T N1.6 (Eagle processor)
+
+// The Eagle processor's smart_resize (factor 28, 4 * 28^2 to 4096 * 28^2 pixels): Python-rounded multiples of 28
+// clamped to [28, 7000]; too many pixels: scaled down from that rounded size and floored; too few: scaled up from
+// the original size and rounded up. Throws invalid_argument past an aspect ratio of 200.
+ResizedSize eagle_smart_resize(int h, int w);
+
+struct EagleFrame {
+  Image image;                // after the geometry, smart_resize and Pillow's bicubic resize
+  std::vector<float> pixels;  // [3, H, W]: (x - 127.5) / 127.5 in float32 (transformers' fused rescale + normalise)
+};
+
+// What Isaac-GR00T's N1.6 processor feeds the SigLIP2 tower for one camera frame: the albumentations eval geometry,
+// the Eagle fetch_image (smart_resize + Pillow bicubic) and the image processor's normalisation.
+EagleFrame eagle_preprocess_frame(const Image& frame, const Gr00tImageGeometry& geometry);
 
 }  // namespace tether::vision

@@ -7,9 +7,12 @@
 #include <cmath>
 #include <cstdio>
 #include <cstring>
+#include <filesystem>
 #include <limits>
 
 #include "core/error.h"
+#include "core/json_util.h"
+#include "core/safetensors.h"
 #include "vision/area_resize.h"
 #include "vision/gr00t_preprocess.h"
 #include "vision_test_util.h"
@@ -425,4 +428,56 @@ TEST(Gr00tVision, BadInputIsRefused) {
   EXPECT_THROW(QwenImageConfig::from_json(Json::parse(R"({"size": {"shortest_edge": 0, "longest_edge": 10}})"), "x"),
                Error);
   EXPECT_THROW(QwenImageConfig::from_json(Json::parse(R"({"patch_size": 0})"), "x"), Error);
+}
+
+// GR00T N1.6's Eagle processing per camera (tests/fixtures/gr00t_n16/cases, tools/oracle/gr00t_n16_oracle.py): the
+// albumentations geometry, the Eagle smart_resize + Pillow bicubic resize, and the fused normalisation, against the
+// oracle's recorded stages. uint8 stages exactly; pixel values to float rounding.
+TEST(Gr00tN16Vision, EagleProcessingMatchesTheOracle) {
+  namespace fs = std::filesystem;
+  const fs::path root = fs::path(TETHER_FIXTURES_DIR) / "gr00t_n16";
+  const Json kwargs = read_json_file((root / "checkpoint" / "processor_config.json").string()).at("processor_kwargs");
+  const Gr00tImageGeometry g = Gr00tImageGeometry::from_n16_processor_kwargs(kwargs, "processor_config.json");
+  int frames = 0;
+  for (const auto& entry : fs::directory_iterator(root / "cases")) {
+    const SafeTensorsFile oracle = SafeTensorsFile::open((entry.path() / "oracle.safetensors").string());
+    const Json files = Json::parse(oracle.metadata().at("input_files"));
+    for (auto it = files.begin(); it != files.end(); ++it) {
+      const std::string cam = it.key();
+      const Image frame = load_image((entry.path() / it->get<std::string>()).string());
+      const Image shaped = gr00t_geometry_albumentations(frame, g);
+      const Tensor want_shaped = oracle.get("pre.eagle_image." + cam);
+      ASSERT_EQ(shaped.height, want_shaped.dim(0)) << cam;
+      ASSERT_EQ(shaped.width, want_shaped.dim(1)) << cam;
+      EXPECT_EQ(std::memcmp(shaped.rgb.data(), want_shaped.as<uint8_t>(), shaped.rgb.size()), 0) << cam;
+      const EagleFrame f = eagle_preprocess_frame(frame, g);
+      const Tensor want_fetched = oracle.get("pre.fetched_image." + cam);
+      ASSERT_EQ(f.image.height, want_fetched.dim(0)) << cam;
+      ASSERT_EQ(f.image.width, want_fetched.dim(1)) << cam;
+      EXPECT_EQ(std::memcmp(f.image.rgb.data(), want_fetched.as<uint8_t>(), f.image.rgb.size()), 0) << cam;
+      const std::vector<float> want = oracle.get("pre.pixel_values." + cam).to_f32();
+      ASSERT_EQ(want.size(), f.pixels.size());
+      float diff = 0;
+      for (std::size_t i = 0; i < want.size(); ++i) diff = std::max(diff, std::fabs(want[i] - f.pixels[i]));
+      std::printf("  [%s/%s] %dx%d -> %dx%d, pixel values max |diff| %.3e\n", entry.path().filename().c_str(),
+                  cam.c_str(), frame.height, frame.width, f.image.height, f.image.width, double(diff));
+      EXPECT_EQ(diff, 0.0f) << cam;
+      ++frames;
+    }
+  }
+  EXPECT_GE(frames, 4);
+}
+
+TEST(Gr00tN16Vision, EagleSmartResizeRules) {
+  EXPECT_EQ(eagle_smart_resize(56, 75).width, 84);   // round(75 / 28) = 3
+  EXPECT_EQ(eagle_smart_resize(56, 187).width, 196); // round(6.68) = 7
+  // Too few pixels: scaled up from the original size, rounded up to 28.
+  const ResizedSize small = eagle_smart_resize(20, 30);
+  EXPECT_EQ(small.height, 56);
+  EXPECT_EQ(small.width, 84);
+  // Too many: scaled down from the rounded size, floored.
+  const ResizedSize big = eagle_smart_resize(4000, 4000);
+  EXPECT_LE(int64_t(big.height) * big.width, 4096 * 28 * 28);
+  EXPECT_EQ(big.height % 28, 0);
+  EXPECT_THROW(eagle_smart_resize(10, 3000), Error);  // aspect ratio past 200
 }
