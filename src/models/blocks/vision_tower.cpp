@@ -1,6 +1,7 @@
 // SigLIP vision towers and the pixel-shuffle connector (see vision_tower.h).
 #include "models/blocks/vision_tower.h"
 
+#include <algorithm>
 #include <cmath>
 
 #include "models/blocks/linear.h"
@@ -28,15 +29,106 @@ VisionConfig VisionConfig::from_json(const Json& j, const std::string& where) {
   return c;
 }
 
+VisionConfig VisionConfig::from_siglip2_json(const Json& j, const std::string& where) {
+  VisionConfig c = from_json(j, where);
+  c.patch = json_get_or<int64_t>(j, "patch_size", 16, where);
+  const int64_t n = json_get_or<int64_t>(j, "num_patches", 256, where);
+  c.table_side = int64_t(std::lround(std::sqrt(double(n))));
+  if (c.table_side * c.table_side != n)
+    throw Error(ErrorCode::format, where + ": num_patches " + std::to_string(n) + " is not a square");
+  c.position_ids = PositionIds::resized;
+  c.linear_patch_embedding = true;
+  c.image_size = c.table_side * c.patch;
+  return c;
+}
+
+std::vector<float> resize_table_bilinear_aa(const float* table, int64_t side, int64_t d, int64_t out_h, int64_t out_w) {
+  // One axis: per output index the first source index, the count and the normalised triangle weights (float32, in
+  // torch's _compute_weights_aa order).
+  struct Axis {
+    std::vector<int64_t> start, count;
+    std::vector<float> w;
+    int64_t taps = 0;
+  };
+  auto axis = [](int64_t in, int64_t out) {
+    Axis a;
+    const float scale = float(in) / float(out);
+    const float support = scale >= 1.0f ? scale : 1.0f;
+    const float invscale = scale >= 1.0f ? 1.0f / scale : 1.0f;
+    a.taps = int64_t(std::ceil(support)) * 2 + 1;
+    a.start.resize(std::size_t(out));
+    a.count.resize(std::size_t(out));
+    a.w.assign(std::size_t(out * a.taps), 0.0f);
+    for (int64_t i = 0; i < out; ++i) {
+      const float center = scale * (float(i) + 0.5f);
+      const int64_t xmin = std::max(int64_t(center - support + 0.5f), int64_t(0));
+      const int64_t xsize = std::min(std::min(int64_t(center + support + 0.5f), in) - xmin, a.taps);
+      float* w = &a.w[std::size_t(i * a.taps)];
+      float total = 0.0f;
+      for (int64_t j = 0; j < xsize; ++j) {
+        float x = (float(j + xmin) - center + 0.5f) * invscale;
+        x = x < 0 ? -x : x;
+        w[j] = x < 1.0f ? 1.0f - x : 0.0f;
+        total += w[j];
+      }
+      if (total != 0.0f)
+        for (int64_t j = 0; j < xsize; ++j) w[j] /= total;
+      a.start[std::size_t(i)] = xmin;
+      a.count[std::size_t(i)] = xsize;
+    }
+    return a;
+  };
+  const Axis ax = axis(side, out_w), ay = axis(side, out_h);
+  auto sample = [](const Axis& a, int64_t i, auto&& at) {
+    const float* w = &a.w[std::size_t(i * a.taps)];
+    float out = at(a.start[std::size_t(i)]) * w[0];
+    for (int64_t j = 1; j < a.count[std::size_t(i)]; ++j) out += at(a.start[std::size_t(i)] + j) * w[j];
+    return out;
+  };
+  // Width first (side x out_w), then height (out_h x out_w); a pass whose size does not change is skipped.
+  std::vector<float> mid(std::size_t(side * out_w * d));
+  for (int64_t y = 0; y < side; ++y)
+    for (int64_t x = 0; x < out_w; ++x)
+      for (int64_t c = 0; c < d; ++c)
+        mid[std::size_t((y * out_w + x) * d + c)] =
+            out_w == side ? table[(y * side + x) * d + c]
+                          : sample(ax, x, [&](int64_t sx) { return table[(y * side + sx) * d + c]; });
+  std::vector<float> out(std::size_t(out_h * out_w * d));
+  for (int64_t y = 0; y < out_h; ++y)
+    for (int64_t x = 0; x < out_w; ++x)
+      for (int64_t c = 0; c < d; ++c)
+        out[std::size_t((y * out_w + x) * d + c)] =
+            out_h == side ? mid[std::size_t((y * out_w + x) * d + c)]
+                          : sample(ay, y, [&](int64_t sy) { return mid[std::size_t((sy * out_w + x) * d + c)]; });
+  return out;
+}
+
 void VisionTower::load(backend::Backend& be, Weights& w, const std::string& prefix, const VisionConfig& cfg,
                        cpu::Precision precision) {
   cfg_ = cfg;
   const int64_t d = cfg.hidden, f = cfg.intermediate, p = cfg.patch;
-  const int64_t side = cfg.image_size / p;
-  patch_w_ = be.constant(w.f32(prefix + "embeddings.patch_embedding.weight", {d, cfg.channels, p, p}),
-                         d * cfg.channels * p * p);
+  const int64_t side = cfg.image_size / p, C = cfg.channels;
+  if (cfg.linear_patch_embedding) {
+    // [d, (row, column, channel)] -> the conv layout [d, channel, row, column] the backend's patch_embed reads.
+    const float* lin = w.f32(prefix + "embeddings.patch_embedding.weight", {d, p * p * C});
+    std::vector<float> conv(std::size_t(d * C * p * p));
+    for (int64_t o = 0; o < d; ++o)
+      for (int64_t y = 0; y < p; ++y)
+        for (int64_t x = 0; x < p; ++x)
+          for (int64_t c = 0; c < C; ++c)
+            conv[std::size_t(((o * C + c) * p + y) * p + x)] = lin[o * p * p * C + (y * p + x) * C + c];
+    patch_w_ = be.alloc<float>(int64_t(conv.size()));  // a copy: constant() would only view this local buffer
+    be.upload(conv.data(), int64_t(conv.size()), patch_w_.at());
+  } else {
+    patch_w_ = be.constant(w.f32(prefix + "embeddings.patch_embedding.weight", {d, C, p, p}), d * C * p * p);
+  }
   patch_b_ = be.constant(w.f32(prefix + "embeddings.patch_embedding.bias", {d}), d);
-  pos_emb_ = be.table(w.raw(prefix + "embeddings.position_embedding.weight", {side * side, d}));
+  if (cfg.position_ids == VisionConfig::PositionIds::resized) {
+    const float* t = w.f32(prefix + "embeddings.position_embedding.weight", {side * side, d});
+    pos_table_.assign(t, t + side * side * d);
+  } else {
+    pos_emb_ = be.table(w.raw(prefix + "embeddings.position_embedding.weight", {side * side, d}));
+  }
   if (cfg.post_norm) {
     post_ln_w_ = be.constant(w.f32(prefix + "post_layernorm.weight", {d}), d);
     post_ln_b_ = be.constant(w.f32(prefix + "post_layernorm.bias", {d}), d);
@@ -91,7 +183,8 @@ void VisionTower::forward(backend::Backend& be, Ptr<const float> pixels, int64_t
   if (height % cfg_.patch || width % cfg_.patch)
     throw Error(ErrorCode::invalid_argument, "vision tower: image " + std::to_string(height) + "x" +
                                                  std::to_string(width) + " is not a multiple of the patch size");
-  if (height > cfg_.image_size || width > cfg_.image_size)
+  const bool resized = cfg_.position_ids == VisionConfig::PositionIds::resized;
+  if (!resized && (height > cfg_.image_size || width > cfg_.image_size))
     throw Error(ErrorCode::invalid_argument, "vision tower: image larger than the position table allows");
   auto grow = [&](backend::Array<float>& a, int64_t size) {
     if (a.size() < size) a = be.alloc<float>(size);
@@ -101,7 +194,14 @@ void VisionTower::forward(backend::Backend& be, Ptr<const float> pixels, int64_t
   grow(qkv_, m * 3 * d);
   grow(attn_, m * d);
   grow(mlp_, m * f);
-  if (pos_for_h_ != height || pos_for_w_ != width) {
+  if (resized && (pos_for_h_ != height || pos_for_w_ != width)) {
+    const std::vector<float> rows =
+        resize_table_bilinear_aa(pos_table_.data(), cfg_.table_side, d, height / cfg_.patch, width / cfg_.patch);
+    pos_rows_ = be.alloc<float>(n * d);
+    be.upload(rows.data(), n * d, pos_rows_.at());
+    pos_for_h_ = height;
+    pos_for_w_ = width;
+  } else if (pos_for_h_ != height || pos_for_w_ != width) {
     std::vector<int64_t> ids;
     position_ids(height / cfg_.patch, width / cfg_.patch, ids);
     pos_ids_ = be.alloc<int64_t>(n);

@@ -18,11 +18,23 @@ struct VisionConfig {
   float layer_norm_eps = 1e-6f;
   // bucketed: Idefics3's fractional patch coordinates bucketised against the native grid, so a smaller image reuses
   // the native table. sequential: SigLIP's 0..patches-1, the image must have the native size.
-  enum class PositionIds { bucketed, sequential } position_ids = PositionIds::bucketed;
-  bool post_norm = true;  // a final LayerNorm over the tower's output
+  // sequential: SigLIP's 0..patches-1, the image must have the native size. resized: SigLIP2's learned square table
+  // (table_side^2 rows) resized to the image's patch grid, bilinear with antialiasing as torch's F.interpolate.
+  enum class PositionIds { bucketed, sequential, resized } position_ids = PositionIds::bucketed;
+  int64_t table_side = 0;  // resized: the table's side (num_patches = table_side^2)
+  bool post_norm = true;   // a final LayerNorm over the tower's output
+  // SigLIP2 stores the patch embedding as a Linear over patches flattened (row, column, channel) instead of a conv.
+  bool linear_patch_embedding = false;
   // Reads a transformers vision_config object; absent fields take the upstream class defaults (SmolVLM's).
   static VisionConfig from_json(const Json& j, const std::string& where);
+  // Reads a SigLIP2 vision_config (Siglip2VisionConfig: num_patches, patch_size 16 by default).
+  static VisionConfig from_siglip2_json(const Json& j, const std::string& where);
 };
+
+// torch's F.interpolate(mode="bilinear", align_corners=False, antialias=True) of a table of `side` x `side` rows of
+// `d` values (row y * side + x) to `out_h` x `out_w` rows, in float32 as its CPU kernel computes it (the width pass
+// first, then the height pass).
+std::vector<float> resize_table_bilinear_aa(const float* table, int64_t side, int64_t d, int64_t out_h, int64_t out_w);
 
 class VisionTower {
  public:
@@ -48,6 +60,7 @@ class VisionTower {
   VisionConfig cfg_;
   backend::Array<float> patch_w_, patch_b_, post_ln_w_, post_ln_b_;
   std::unique_ptr<backend::Table> pos_emb_;
+  std::vector<float> pos_table_;  // resized positions: the host table they are computed from
   std::vector<Layer> layers_;
   backend::Array<float> x_, normed_, qkv_, attn_, mlp_, pos_rows_;  // activations, grown once per shape
   backend::Array<int64_t> pos_ids_;

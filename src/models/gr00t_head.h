@@ -1,0 +1,98 @@
+// What GR00T N1.7 and N1.6 share after their backbones: the processor_config.json readers and the
+// embodiment-conditioned action head with its flow-matching sampler (vlln, optional VL self-attention, the
+// alternating DiT, the per-embodiment state / action encoders and decoder). Each family file derives from
+// Gr00tModel and adds its backbone (gr00t_n17.cpp: Qwen3-VL; gr00t_n16.cpp: Eagle). docs/design/gr00t.md section 3.
+#pragma once
+
+#include <chrono>
+#include <filesystem>
+#include <memory>
+#include <string>
+#include <vector>
+
+#include "backend/backend.h"
+#include "models/blocks/dit.h"
+#include "models/gr00t.h"
+#include "models/weights.h"
+
+namespace tether::models {
+
+// processor_config.json's processor_kwargs (the checkpoint's processing settings).
+Json gr00t_processor_kwargs(const std::filesystem::path& dir);
+
+// The action head's part of config.json (GR00TN17Config / Gr00tN1d6Config; both name the fields alike).
+struct Gr00tHeadConfig {
+  int64_t select_layer = 16, backbone_dim = 2048, hidden = 1024, input_dim = 1536, max_state_dim = 132,
+          max_action_dim = 132, action_horizon = 40, num_embodiments = 32, max_seq_len = 1024, steps = 4,
+          buckets = 1000;
+  float rtc_ramp_rate = 6.0f;
+  bool add_pos_embed = true, use_vlln = true;
+  DitConfig dit;
+  int64_t vl_layers = 0, vl_heads = 0, vl_head_dim = 0;
+  std::string model_name;
+
+  static Gr00tHeadConfig from_json(const Json& c, const std::string& where, const std::string& default_model_name);
+};
+
+class Gr00tModel : public Model {
+ public:
+  const ModelSpec& spec() const override { return spec_; }
+  // The backbone per observation, then the head for the batch over the sampler's steps.
+  ModelOutput predict(const std::vector<ModelInput>& batch) final;
+
+ protected:
+  explicit Gr00tModel(const LoadOptions& options);
+
+  // One observation's backbone output: `len` rows of backbone_dim (before vlln), valid until the next call.
+  struct Backbone {
+    backend::Ptr<const float> features;
+    int64_t len = 0;
+    std::vector<uint8_t> image_mask;  // [len]: 1 on image tokens
+  };
+  virtual Backbone encode_backbone(const ModelInput& in, int64_t item, ModelOutput& out) = 0;
+  // The state encoder's input for one observation, max_state_dim values zero-padded. Default: the normalised
+  // state as the policy passes it (N1.7); N1.6 encodes its raw state itself.
+  virtual void head_state(const ModelInput& in, float* out) const;
+
+  // Loads the head (after head_ and embodiment_ are set) and fills the spec fields it decides.
+  void load_head(Weights& w, cpu::Precision precision);
+  void fill_spec(const FamilyDescriptor& family, const std::string& tokenizer_source, int64_t image_h, int64_t image_w,
+                 cpu::Precision precision, const std::string& weights_dtype, const std::string& where);
+
+  static double elapsed_ms(std::chrono::steady_clock::time_point since) {
+    return std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - since).count();
+  }
+
+  std::shared_ptr<backend::Backend> be_;
+  std::unique_ptr<Weights> weights_;  // kept for the model's life: constants view its mapping
+  ModelSpec spec_;
+  Gr00tHeadConfig head_;
+  Gr00tEmbodiment embodiment_;
+
+ private:
+  struct Prefix {  // one observation's conditioning: vl_embeds [len, backbone_dim]
+    int64_t len = 0;
+    backend::Array<float> vl;
+    std::vector<uint8_t> image_mask;
+  };
+  void velocity(int64_t B, backend::Ptr<const float> x, float time, backend::Ptr<float> v);
+
+  backend::Array<float> vlln_w_, vlln_b_;
+  SelfAttentionStack vl_attention_;
+  DiTStack dit_;
+  std::unique_ptr<backend::LinearWeights> state1_, state2_, act1_, act2_, act3_, dec1_, dec2_;
+  backend::Array<float> action_pos_;  // [action_horizon, input_dim]
+
+  // Per-request buffers, grown once per shape.
+  backend::Array<float> context_, state_, state_mid_, state_tok_;
+  backend::Array<uint8_t> text_keys_, image_keys_, all_keys_;
+  backend::Array<float> noise_x_, noise_v_, act_in_, act_mid_, tokens_, dit_out_, dec_mid_, dec_out_, temb_;
+  std::vector<CrossKv> kv_;
+  std::vector<backend::Ptr<const uint8_t>> dit_masks_;  // per DiT block: this request's key mask (cross blocks)
+  std::vector<float> host_sinusoid_;                     // the action encoder's time row, reused by every step
+};
+
+// Grows `a` to at least n values (activations are sized once per shape).
+void grow(backend::Backend& be, backend::Array<float>& a, int64_t n);
+
+}  // namespace tether::models
