@@ -13,8 +13,10 @@
 
 namespace tether::models {
 
-// The family's descriptor (gr00t_family.cpp): raw NVIDIA checkpoints with config.json model_type "Gr00tN1d7".
+// The families' descriptors (gr00t_family.cpp): raw NVIDIA checkpoints with config.json model_type "Gr00tN1d7"
+// (N1.7) or "Gr00tN1d6" (N1.6).
 const FamilyDescriptor& gr00t_n17_family();
+const FamilyDescriptor& gr00t_n16_family();
 
 // One embodiment of a checkpoint, as processor_config.json's modality config, statistics.json and
 // embodiment_id.json describe it.
@@ -41,6 +43,8 @@ std::string gr00t_formalize_language(const std::string& instruction, bool formal
 bool gr00t_applies_libero_transform(const std::string& embodiment_tag);
 void libero_gripper_transform(std::vector<float>& actions, const std::vector<ModalityGroup>& action_groups);
 
+std::unique_ptr<Model> load_gr00t_n16(const std::filesystem::path& dir, const Json& config, TensorStore weights,
+                                      const LoadOptions& options);
 std::unique_ptr<Model> load_gr00t_n17(const std::filesystem::path& dir, const Json& config, TensorStore weights,
                                       const LoadOptions& options);
 

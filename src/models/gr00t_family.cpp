@@ -1,6 +1,7 @@
-// GR00T N1.7's family descriptor: raw NVIDIA checkpoints (config.json model_type "Gr00tN1d7", sharded safetensors,
-// processor_config.json, statistics.json, embodiment_id.json) whose Qwen3-VL backbone files are found by the config's
-// model_name beside the checkpoint or in the hub cache.
+// GR00T N1.7's and N1.6's family descriptors: raw NVIDIA checkpoints (config.json model_type "Gr00tN1d7" /
+// "Gr00tN1d6", sharded safetensors, processor_config.json, statistics.json, embodiment_id.json) whose backbone files
+// (N1.7: the Qwen3-VL repository; N1.6: the Eagle directory) are found by the config's model_name beside the
+// checkpoint or in the hub cache.
 #include <filesystem>
 
 #include "models/backbone.h"
@@ -14,17 +15,19 @@ namespace {
 
 constexpr const char* kSidecars[] = {"processor_config.json", "statistics.json", "embodiment_id.json"};
 
-bool recognises(const CheckpointProbe& p) {
+bool is_model_type(const CheckpointProbe& p, const char* type) {
   if (!p.config.is_object() || p.config.contains("type")) return false;  // "type" marks a lerobot checkpoint
-  return p.config.value("model_type", std::string()) == "Gr00tN1d7";
+  return p.config.value("model_type", std::string()) == type;
 }
+bool recognises_n17(const CheckpointProbe& p) { return is_model_type(p, "Gr00tN1d7"); }
+bool recognises_n16(const CheckpointProbe& p) { return is_model_type(p, "Gr00tN1d6"); }
 
 std::vector<std::string> weight_files(const fs::path& dir) { return TensorStore::files_in(dir.string()); }
 
 TensorStore open_weights(const fs::path& dir) { return TensorStore::open_dir(dir.string()); }
 
 // The state and action bounds of the served embodiment, applied as lerobot's N1.7 pack and decode steps apply them.
-Normalization load_normalization(const fs::path& dir, const Json&, TensorStore&, const LoadOptions& options) {
+Normalization load_normalization_n17(const fs::path& dir, const Json&, TensorStore&, const LoadOptions& options) {
   const Gr00tEmbodiment e = read_gr00t_embodiment(dir, options.embodiment);
   Normalization n;
   FeatureNorm state{"STATE", NormMode::min_max_clipped, false, {{"min", e.state_lo}, {"max", e.state_hi}}};
@@ -36,10 +39,22 @@ Normalization load_normalization(const fs::path& dir, const Json&, TensorStore&,
   return n;
 }
 
+// N1.6 encodes its state itself (sin/cos, mean/std or min/max per group: the model file); the action is decoded with
+// min/max (q01/q99 with use_percentiles), clipped, as Isaac-GR00T's StateActionProcessor.unapply_action does.
+Normalization load_normalization_n16(const fs::path& dir, const Json&, TensorStore&, const LoadOptions& options) {
+  const Gr00tEmbodiment e = read_gr00t_embodiment(dir, options.embodiment);
+  Normalization n;
+  FeatureNorm action{"ACTION", NormMode::min_max_clipped, false, {{"min", e.action_lo}, {"max", e.action_hi}}};
+  finish_feature("action", action, (dir / "statistics.json").string(), n.warnings);
+  n.output.features["action"] = action;
+  return n;
+}
+
 // The sidecar files are copied, or, when one embodiment is exported, written narrowed to it (its modality config,
 // statistics and weights row), so that the export loads without naming it; the weights keep every row. The backbone
 // repository's files travel under the id the config names, which the loader looks for relative to the checkpoint first.
-ExportPlan export_plan(const fs::path& dir, const Json& config, const LoadOptions& options) {
+ExportPlan export_plan(const fs::path& dir, const Json& config, const LoadOptions& options,
+                       const std::string& default_backbone) {
   ExportPlan plan;
   if (options.embodiment.empty()) {
     for (const char* f : kSidecars) plan.copy.push_back(f);
@@ -53,7 +68,7 @@ ExportPlan export_plan(const fs::path& dir, const Json& config, const LoadOption
     plan.written.push_back({"statistics.json", Json{{e.tag, stats.at(e.tag)}}});
     plan.written.push_back({"embodiment_id.json", Json{{e.tag, e.id}}});
   }
-  const std::string name = config.value("model_name", std::string("nvidia/Cosmos-Reason2-2B"));
+  const std::string name = config.value("model_name", default_backbone);
   if (fs::path(name).is_absolute())
     throw Error(ErrorCode::unsupported, (dir / "config.json").string() +
                                             ": an absolute model_name cannot be exported (name a hub repo)");
@@ -63,25 +78,50 @@ ExportPlan export_plan(const fs::path& dir, const Json& config, const LoadOption
   return plan;
 }
 
+ExportPlan export_plan_n17(const fs::path& dir, const Json& config, const LoadOptions& options) {
+  return export_plan(dir, config, options, "nvidia/Cosmos-Reason2-2B");
+}
+ExportPlan export_plan_n16(const fs::path& dir, const Json& config, const LoadOptions& options) {
+  return export_plan(dir, config, options, "nvidia/Eagle-Block2A-2B-v2");
+}
+
 const FamilyDescriptor kGr00tN17 = {
     .name = "gr00t_n17",
     .summary = "GR00T N1.7 (NVIDIA): Qwen3-VL backbone (Cosmos-Reason2) cut at select_layer, VL self-attention, "
                "alternating cross/self-attention DiT with per-embodiment encoders, 4-step flow matching",
     .recognition = "config.json \"model_type\": \"Gr00tN1d7\" (raw NVIDIA layout)",
-    .recognises = &recognises,
+    .recognises = &recognises_n17,
     .tokenizer = TokenizerKind::byte_level_bpe,
     .stages = {"preprocess", "vision", "backbone", "denoise"},
     .missing_camera_rule = "every camera of the embodiment is required (upstream has no rule for a missing one)",
     .weight_files = &weight_files,
     .open_weights = &open_weights,
-    .load_normalization = &load_normalization,
+    .load_normalization = &load_normalization_n17,
     .load = &load_gr00t_n17,
-    .export_plan = &export_plan,
+    .export_plan = &export_plan_n17,
+    .keeps_copy = &vlm_keeps_copy,
+};
+
+const FamilyDescriptor kGr00tN16 = {
+    .name = "gr00t_n16",
+    .summary = "GR00T N1.6 (NVIDIA): Eagle backbone (SigLIP2, pixel unshuffle + mlp1, Qwen3 cut at select_layer), "
+               "alternating cross/self-attention DiT with per-embodiment encoders, 4-step flow matching",
+    .recognition = "config.json \"model_type\": \"Gr00tN1d6\" (raw NVIDIA layout)",
+    .recognises = &recognises_n16,
+    .tokenizer = TokenizerKind::byte_level_bpe,
+    .stages = {"preprocess", "vision", "backbone", "denoise"},
+    .missing_camera_rule = "every camera of the embodiment is required (upstream has no rule for a missing one)",
+    .weight_files = &weight_files,
+    .open_weights = &open_weights,
+    .load_normalization = &load_normalization_n16,
+    .load = &load_gr00t_n16,
+    .export_plan = &export_plan_n16,
     .keeps_copy = &vlm_keeps_copy,
 };
 
 }  // namespace
 
 const FamilyDescriptor& gr00t_n17_family() { return kGr00tN17; }
+const FamilyDescriptor& gr00t_n16_family() { return kGr00tN16; }
 
 }  // namespace tether::models

@@ -21,6 +21,7 @@ const std::vector<const FamilyDescriptor*>& families() {
       &pi05_family(),
       &pi05_fluxvla_family(),
       &gr00t_n17_family(),
+      &gr00t_n16_family(),
   };
   return kFamilies;
 }
