@@ -132,7 +132,13 @@ Gr00tN16::Gr00tN16(const fs::path& dir, const Json& config, TensorStore store, c
 
   // The Eagle directory the config names (Isaac-GR00T vendors it; Tether looks beside the checkpoint, then in the
   // hub cache): its architecture and tokenizer.
-  const fs::path bdir = find_backbone_dir(dir, head_.model_name, "model_name in config.json");
+  fs::path bdir;
+  try {
+    bdir = find_backbone_dir(dir, head_.model_name, "model_name in config.json");
+  } catch (const Error& e) {
+    throw Error(e.code(), std::string(e.what()) + "; the Eagle directory is not a hub repository: copy Isaac-GR00T's "
+                          "gr00t/model/modules/nvidia/Eagle-Block2A-2B-v2 to " + (dir / head_.model_name).string());
+  }
   const std::string bwhere = (bdir / "config.json").string();
   const Json bcfg = read_json_file(bwhere);
   if (json_get_or<int64_t>(bcfg, "select_layer", -1, bwhere) != -1)

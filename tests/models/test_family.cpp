@@ -46,7 +46,7 @@ std::pair<ErrorCode, std::string> error_of(F f) {
 }  // namespace
 
 TEST(Families, RegistryKnowsEveryFamily) {
-  EXPECT_EQ(model_families(), (std::vector<std::string>{"smolvla", "pi0", "pi05", "pi05_fluxvla", "gr00t_n17"}));
+  EXPECT_EQ(model_families(), (std::vector<std::string>{"smolvla", "pi0", "pi05", "pi05_fluxvla", "gr00t_n17", "gr00t_n16"}));
   const FamilyDescriptor* f = find_family("smolvla");
   ASSERT_NE(f, nullptr);
   EXPECT_EQ(f->stages, (std::vector<std::string>{"preprocess", "vision", "prefix", "denoise"}));

@@ -105,9 +105,9 @@ struct CliRun {
   std::string out;  // stdout and stderr together
 };
 
-CliRun run_tether(const std::string& args) {
+CliRun run_tether(const std::string& args, const std::string& env = "") {
   CliRun r;
-  FILE* pipe = popen((std::string(TETHER_BINARY) + " " + args + " 2>&1").c_str(), "r");
+  FILE* pipe = popen((env + (env.empty() ? "" : " ") + std::string(TETHER_BINARY) + " " + args + " 2>&1").c_str(), "r");
   char buf[4096];
   std::size_t n;
   while ((n = fread(buf, 1, sizeof buf, pipe)) > 0) r.out.append(buf, n);
@@ -138,7 +138,12 @@ TEST(GoCli, UnknownIdAndUnsupportedFamilyExit2) {
   CliRun r = run_tether("go --model no-such-model");
   EXPECT_EQ(r.code, 2) << r.out;
   EXPECT_NE(r.out.find("smolvla-demo"), std::string::npos) << "should list the known ids: " << r.out;
-  r = run_tether("go --model gr00t-n1.6");
+  // An entry the build does not support yet (every shipped one is supported): a registry of one.
+  const auto dir = temp_dir("registry");
+  std::ofstream(dir / "registry.json") << R"({"schema_version": 1, "models": {"future-vla": {"family": "future",
+      "hf_repo": "example/future-vla", "description": "a family this build does not know", "license": "apache-2.0",
+      "supported": false, "parameters": 1000, "figures": []}}})";
+  r = run_tether("go --model future-vla", "TETHER_REGISTRY=" + (dir / "registry.json").string());
   EXPECT_EQ(r.code, 2) << r.out;
   EXPECT_NE(r.out.find("not supported"), std::string::npos) << r.out;
   EXPECT_EQ(run_tether("go").code, 2);
