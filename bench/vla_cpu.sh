@@ -61,22 +61,7 @@ image=models/demo/sample.png
 instruction="pick up the red cube and put it in the blue bowl"
 # The cameras and a state of the checkpoint's width, in robot units near its statistics' centre: from the lerobot
 # config's features, or (GR00T) from the processor config's only embodiment and its statistics.
-read -r cameras_line state < <(python3 - "$checkpoint" <<'PY'
-import json, sys
-d = sys.argv[1]
-c = json.load(open(d + "/config.json"))
-if "input_features" in c:
-    cams = [k for k, v in c["input_features"].items() if v["type"] == "VISUAL"]
-    n = next(v["shape"][0] for v in c["input_features"].values() if v["type"] == "STATE")
-else:
-    m = json.load(open(d + "/processor_config.json"))["processor_kwargs"]["modality_configs"]
-    tag, emb = next(iter(m.items()))
-    stats = json.load(open(d + "/statistics.json"))[tag]["state"]
-    cams = emb["video"]["modality_keys"]
-    n = sum(len(stats[k]["min"]) for k in emb["state"]["modality_keys"])
-print(",".join(cams), ",".join(f"{0.1 * ((i % 7) - 3):.1f}" for i in range(n)))
-PY
-)
+read -r cameras_line state < <(python3 bench/checkpoint_inputs.py "$checkpoint")
 cameras=${cameras_line//,/ }
 image_args=()
 for cam in $cameras; do image_args+=(--image "$cam=$PWD/$image"); done

@@ -249,6 +249,19 @@ std::array<double, 3> json_triple(const Json& j, const std::string& key, std::ar
   return out;
 }
 
+// processor_kwargs readers as lerobot / Isaac-GR00T read them: a 2-element list (anything else counts as absent),
+// and a flag (a non-boolean counts as false).
+std::optional<std::array<int, 2>> kwargs_pair(const Json& kwargs, const char* key, const std::string& where) {
+  auto it = kwargs.find(key);
+  if (it == kwargs.end() || !it->is_array() || it->size() != 2) return std::nullopt;
+  return std::array{json_int((*it)[0], key, where), json_int((*it)[1], key, where)};
+}
+
+bool kwargs_flag(const Json& kwargs, const char* key) {
+  auto it = kwargs.find(key);
+  return it != kwargs.end() && it->is_boolean() && it->get<bool>();
+}
+
 }  // namespace
 
 // ---------------------------------------------------------------- public: resize
@@ -292,16 +305,8 @@ std::optional<double> Gr00tImageGeometry::effective_crop_fraction() const {
 Gr00tImageGeometry Gr00tImageGeometry::from_processor_kwargs(const Json& kwargs, const std::string& where) {
   Gr00tImageGeometry g;
   if (!kwargs.is_object()) throw Error(ErrorCode::format, where + ": processor_kwargs is not an object");
-  // lerobot's as_int_pair: a 2-element list, anything else counts as absent.
-  auto pair = [&](const char* key) -> std::optional<std::array<int, 2>> {
-    auto it = kwargs.find(key);
-    if (it == kwargs.end() || !it->is_array() || it->size() != 2) return std::nullopt;
-    return std::array{json_int((*it)[0], key, where), json_int((*it)[1], key, where)};
-  };
-  auto flag = [&](const char* key) {
-    auto it = kwargs.find(key);
-    return it != kwargs.end() && it->is_boolean() && it->get<bool>();
-  };
+  auto pair = [&](const char* key) { return kwargs_pair(kwargs, key, where); };
+  auto flag = [&](const char* key) { return kwargs_flag(kwargs, key); };
   g.use_albumentations = flag("use_albumentations");
   g.letter_box = flag("letter_box_transform");
   const auto target = pair("image_target_size");
@@ -517,15 +522,8 @@ namespace tether::vision {
 
 Gr00tImageGeometry Gr00tImageGeometry::from_n16_processor_kwargs(const Json& kwargs, const std::string& where) {
   if (!kwargs.is_object()) throw Error(ErrorCode::format, where + ": processor_kwargs is not an object");
-  auto flag = [&](const char* key) {
-    auto it = kwargs.find(key);
-    return it != kwargs.end() && it->is_boolean() && it->get<bool>();
-  };
-  auto pair = [&](const char* key) -> std::optional<std::array<int, 2>> {
-    auto it = kwargs.find(key);
-    if (it == kwargs.end() || !it->is_array() || it->size() != 2) return std::nullopt;
-    return std::array{json_int((*it)[0], key, where), json_int((*it)[1], key, where)};
-  };
+  auto pair = [&](const char* key) { return kwargs_pair(kwargs, key, where); };
+  auto flag = [&](const char* key) { return kwargs_flag(kwargs, key); };
   if (!flag("use_albumentations"))
     throw Error(ErrorCode::unsupported, where + ": use_albumentations false (Isaac-GR00T's torchvision path) is not "
                                                 "supported for N1.6; released checkpoints use the albumentations path");

@@ -8,6 +8,7 @@
 
 #include "cli_runner.h"
 #include "core/json_util.h"
+#include "eagle_hub.h"
 #include "scratch_dir.h"
 
 namespace fs = std::filesystem;
@@ -17,11 +18,10 @@ namespace {
 const fs::path kCase = fs::path(TETHER_FIXTURES_DIR) / "gr00t_n17" / "cam2_new";
 const fs::path kHub = fs::path(TETHER_FIXTURES_DIR) / "gr00t_hub";
 
-// The binary with the stand-in backbone hub cache set for the child only; stderr apart.
-CliRun run_gr00t(const std::string& args) {
+// The binary with a hub cache (default: N1.7's stand-in backbone repository) set for the child only; stderr apart.
+CliRun run_gr00t(const std::string& args, const fs::path& hub = kHub) {
   const fs::path err_file = tether::testing::scratch_dir() / "gr00t_cli_err";
-  const std::string cmd =
-      "HF_HUB_CACHE=" + kHub.string() + " " + TETHER_BINARY + " " + args + " 2>" + err_file.string();
+  const std::string cmd = "HF_HUB_CACHE=" + hub.string() + " " + TETHER_BINARY + " " + args + " 2>" + err_file.string();
   CliRun r;
   FILE* pipe = popen(cmd.c_str(), "r");
   char buf[4096];
@@ -130,64 +130,38 @@ TEST(Gr00tCli, EmbodimentAndObservationErrorsAreOneLine) {
   }
 }
 
-// N1.6: the checkpoint names Isaac-GR00T's Eagle directory, put in a hub cache under that id for these runs.
+// N1.6: the checkpoint names Isaac-GR00T's Eagle directory, put in a hub cache under that id (eagle_hub.h).
 const fs::path kN16 = fs::path(TETHER_FIXTURES_DIR) / "gr00t_n16";
 
-fs::path eagle_hub() {
-  const fs::path hub = tether::testing::scratch_dir() / "eagle_hub";
-  const fs::path repo = hub / "models--nvidia--Eagle-Block2A-2B-v2";
-  fs::create_directories(repo / "snapshots");
-  fs::create_directories(repo / "refs");
-  std::ofstream(repo / "refs" / "main") << "main";
-  if (!fs::exists(repo / "snapshots" / "main")) fs::create_directory_symlink(kN16 / "eagle", repo / "snapshots" / "main");
-  return hub;
-}
-
-CliRun run_n16(const std::string& args, const fs::path& hub) {
-  const fs::path err_file = tether::testing::scratch_dir() / "gr00t_n16_cli_err";
-  const std::string cmd = "HF_HUB_CACHE=" + hub.string() + " " + TETHER_BINARY + " " + args + " 2>" + err_file.string();
-  CliRun r;
-  FILE* pipe = popen(cmd.c_str(), "r");
-  char buf[4096];
-  std::size_t n;
-  while ((n = fread(buf, 1, sizeof buf, pipe)) > 0) r.out.append(buf, n);
-  const int status = pclose(pipe);
-  r.code = WIFEXITED(status) ? WEXITSTATUS(status) : -1;
-  std::ifstream in(err_file);
-  r.err.assign(std::istreambuf_iterator<char>(in), {});
-  fs::remove(err_file);
-  return r;
-}
-
 TEST(Gr00tN16Cli, PredictExportAndValidateOneEmbodiment) {
-  const fs::path hub = eagle_hub(), ckpt = kN16 / "checkpoint";
+  const fs::path hub = tether::testing::eagle_hub_cache(), ckpt = kN16 / "checkpoint";
   const fs::path img = kN16 / "cases" / "cam1_libero_panda" / "inputs" / "image.png";
   // libero_panda's raw state: eef_pos 3, eef_rot 3 (sin/cos encoded), gripper 2 (mean/std).
   const std::string obs = " --image image=" + img.string() + " --state=0.1,0.2,0.3,0.4,0.5,0.6,0.01,0.02 --instruction 'put the bowl on the plate'";
-  CliRun r = run_n16("predict " + ckpt.string() + obs + " --embodiment-tag libero_panda --seed 1 --json", hub);
+  CliRun r = run_gr00t("predict " + ckpt.string() + obs + " --embodiment-tag libero_panda --seed 1 --json", hub);
   ASSERT_EQ(r.code, 0) << r.err;
   const auto j = tether::Json::parse(r.out);
   EXPECT_EQ(j.at("num_actions").get<int>(), 6);
   EXPECT_EQ(j.at("action_dim").get<int>(), 7);
-  r = run_n16("inspect model " + ckpt.string() + " --embodiment-tag new_embodiment --json", hub);
+  r = run_gr00t("inspect model " + ckpt.string() + " --embodiment-tag new_embodiment --json", hub);
   ASSERT_EQ(r.code, 0) << r.err;
   EXPECT_EQ(tether::Json::parse(r.out).at("family").get<std::string>(), "gr00t_n16");
   const fs::path out = tether::testing::scratch_dir() / "gr00t_n16_export";
   fs::remove_all(out);
-  r = run_n16("export " + ckpt.string() + " -o " + out.string() + " --precision bf16 --embodiment-tag libero_panda", hub);
+  r = run_gr00t("export " + ckpt.string() + " -o " + out.string() + " --precision bf16 --embodiment-tag libero_panda", hub);
   ASSERT_EQ(r.code, 0) << r.err;
   EXPECT_TRUE(fs::exists(out / "nvidia" / "Eagle-Block2A-2B-v2" / "tokenizer.json"));  // the export carries Eagle
   // The export loads without the hub cache (its Eagle copy) and without a tag (one embodiment), and validates.
-  r = run_n16("validate export " + out.string(), hub);
+  r = run_gr00t("validate export " + out.string(), hub);
   EXPECT_EQ(r.code, 0) << r.out << r.err;
-  r = run_n16("predict " + out.string() + obs + " --seed 1 --json", tether::testing::scratch_dir() / "no_hub");
+  r = run_gr00t("predict " + out.string() + obs + " --seed 1 --json", tether::testing::scratch_dir() / "no_hub");
   ASSERT_EQ(r.code, 0) << r.err;
   EXPECT_EQ(tether::Json::parse(r.out).at("actions"), j.at("actions"));  // bf16 of bf16 weights: the same numbers
   fs::remove_all(out);
 }
 
 TEST(Gr00tN16Cli, MissingEagleDirectorySaysWhereItComesFrom) {
-  const CliRun r = run_n16("predict " + (kN16 / "checkpoint").string() + " --embodiment-tag libero_panda --image image=" +
+  const CliRun r = run_gr00t("predict " + (kN16 / "checkpoint").string() + " --embodiment-tag libero_panda --image image=" +
                                (kN16 / "cases" / "cam1_libero_panda" / "inputs" / "image.png").string() +
                                " --state=0,0,0,0,0,0,0,0 --instruction x",
                            tether::testing::scratch_dir() / "no_hub");

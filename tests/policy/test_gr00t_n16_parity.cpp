@@ -12,7 +12,6 @@
 #include <cstdio>
 #include <cstdlib>
 #include <filesystem>
-#include <fstream>
 #include <map>
 
 #include "backend/backend.h"
@@ -21,7 +20,7 @@
 #include "models/blocks/vision_tower.h"
 #include "models/weights.h"
 #include "policy/policy.h"
-#include "scratch_dir.h"
+#include "eagle_hub.h"
 
 using namespace tether;
 namespace fs = std::filesystem;
@@ -30,20 +29,7 @@ namespace {
 
 const fs::path kRoot = fs::path(TETHER_FIXTURES_DIR) / "gr00t_n16";
 
-// Isaac-GR00T vendors the Eagle directory; the checkpoint names it as `nvidia/Eagle-Block2A-2B-v2`, which Tether
-// finds beside the checkpoint or in the hub cache. The fixture's stand-in is put in a scratch hub cache under that id.
-void use_eagle_hub() {
-  static const fs::path hub = [] {
-    const fs::path h = tether::testing::scratch_dir() / "gr00t_n16_hub";
-    const fs::path repo = h / "models--nvidia--Eagle-Block2A-2B-v2";
-    fs::create_directories(repo / "snapshots");
-    fs::create_directories(repo / "refs");
-    std::ofstream(repo / "refs" / "main") << "main";
-    if (!fs::exists(repo / "snapshots" / "main")) fs::create_directory_symlink(kRoot / "eagle", repo / "snapshots" / "main");
-    return h;
-  }();
-  ::setenv("HF_HUB_CACHE", hub.c_str(), 1);
-}
+void use_eagle_hub() { ::setenv("HF_HUB_CACHE", tether::testing::eagle_hub_cache().c_str(), 1); }
 
 double max_abs(const std::vector<float>& a) {
   double m = 0;
