@@ -249,6 +249,18 @@ std::array<double, 3> json_triple(const Json& j, const std::string& key, std::ar
   return out;
 }
 
+// Both smart_resize variants refuse an empty frame and an aspect ratio past 200, as upstream does.
+void check_smart_resize_input(int h, int w) {
+  if (h <= 0 || w <= 0)
+    throw Error(ErrorCode::invalid_argument,
+                "smart_resize: empty image (" + std::to_string(h) + "x" + std::to_string(w) + ")");
+  const double ratio = double(std::max(h, w)) / double(std::min(h, w));
+  if (ratio > 200)
+    throw Error(ErrorCode::invalid_argument, "smart_resize: absolute aspect ratio must be smaller than 200, got " +
+                                                 std::to_string(ratio) + " (" + std::to_string(h) + "x" +
+                                                 std::to_string(w) + ")");
+}
+
 // processor_kwargs readers as lerobot / Isaac-GR00T read them: a 2-element list (anything else counts as absent),
 // and a flag (a non-boolean counts as false).
 std::optional<std::array<int, 2>> kwargs_pair(const Json& kwargs, const char* key, const std::string& where) {
@@ -434,14 +446,7 @@ QwenImageConfig QwenImageConfig::from_json(const Json& j, const std::string& whe
 }
 
 ResizedSize qwen_smart_resize(int h, int w, const QwenImageConfig& cfg) {
-  if (h <= 0 || w <= 0)
-    throw Error(ErrorCode::invalid_argument,
-                "smart_resize: empty image (" + std::to_string(h) + "x" + std::to_string(w) + ")");
-  const double ratio = double(std::max(h, w)) / double(std::min(h, w));
-  if (ratio > 200)
-    throw Error(ErrorCode::invalid_argument, "smart_resize: absolute aspect ratio must be smaller than 200, got " +
-                                                 std::to_string(ratio) + " (" + std::to_string(h) + "x" +
-                                                 std::to_string(w) + ")");
+  check_smart_resize_input(h, w);
   const int64_t factor = cfg.factor();
   int64_t hb = py_round(double(h) / double(factor)) * factor;
   int64_t wb = py_round(double(w) / double(factor)) * factor;
@@ -555,14 +560,7 @@ Gr00tImageGeometry Gr00tImageGeometry::from_n16_processor_kwargs(const Json& kwa
 
 ResizedSize eagle_smart_resize(int h, int w) {
   constexpr int64_t factor = 28, min_pixels = 4 * 28 * 28, max_pixels = 4096 * 28 * 28, max_side = 500 * 14;
-  if (h <= 0 || w <= 0)
-    throw Error(ErrorCode::invalid_argument,
-                "smart_resize: empty image (" + std::to_string(h) + "x" + std::to_string(w) + ")");
-  const double ratio = double(std::max(h, w)) / double(std::min(h, w));
-  if (ratio > 200)
-    throw Error(ErrorCode::invalid_argument, "smart_resize: absolute aspect ratio must be smaller than 200, got " +
-                                                 std::to_string(ratio) + " (" + std::to_string(h) + "x" +
-                                                 std::to_string(w) + ")");
+  check_smart_resize_input(h, w);
   int64_t hb = std::min(std::max(factor, py_round(double(h) / double(factor)) * factor), max_side);
   int64_t wb = std::min(std::max(factor, py_round(double(w) / double(factor)) * factor), max_side);
   if (hb * wb > max_pixels) {
