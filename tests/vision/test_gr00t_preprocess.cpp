@@ -1,5 +1,6 @@
 // GR00T N1.7 camera-frame preprocessing parity against the upstream code itself (fixtures written by
-// tools/oracle/gr00t_vision_fixtures.py): OpenCV INTER_AREA, torchvision's uint8 bicubic antialias resize,
+// tools/oracle/gr00t_vision_fixtures.py): OpenCV INTER_AREA, torchvision's uint8 bicubic antialias resize, Pillow's
+// bicubic resize (N1.6),
 // lerobot's two eval geometry paths, and transformers' Qwen2VLImageProcessor. uint8 stages must match exactly;
 // pixel rows are compared value by value (max |diff| printed, expected 0).
 #include <gtest/gtest.h>
@@ -185,6 +186,20 @@ TEST(Gr00tVision, BicubicAntialiasMatchesTorchvision) {
     const ByteDiff d = compare_images(got, want);
     std::printf("  bicubic %-31s max|diff| %d (%lld bytes differ)\n", name.c_str(), d.max_abs,
                 (long long)d.mismatched);
+    EXPECT_EQ(d.mismatched, 0) << name;
+  }
+}
+
+TEST(Gr00tVision, PillowBicubicMatchesPillow) {
+  const SafeTensorsFile& f = gr00t_fixture("pil_bicubic.safetensors");
+  const Json cases = metadata_json(f, "cases");
+  ASSERT_GE(cases.size(), 15u);
+  for (const auto& c : cases) {
+    const std::string name = c.at("name");
+    const Image want = image_from_tensor(f.get("pil/" + name));
+    const Image got = resize_bicubic_pil(synth(c.at("frame")), c.at("out")[0].get<int>(), c.at("out")[1].get<int>());
+    const ByteDiff d = compare_images(got, want);
+    std::printf("  pil %-35s max|diff| %d (%lld bytes differ)\n", name.c_str(), d.max_abs, (long long)d.mismatched);
     EXPECT_EQ(d.mismatched, 0) << name;
   }
 }

@@ -28,6 +28,7 @@ import cv2
 import numpy as np
 import torch
 import torchvision
+from PIL import Image as PILImage
 from safetensors.numpy import save_file
 from torchvision.transforms import InterpolationMode
 from torchvision.transforms.v2 import functional as tvF
@@ -139,6 +140,15 @@ BICUBIC_CASES = [
     ("to_4x1_9x5", 9, 5, 4, 1, 42, "binary"),
     ("from_1x1_4x3", 1, 1, 4, 3, 40, "scene"),
     ("big_shrink_300x400_37x29", 300, 400, 37, 29, 41, "binary"),
+]
+
+# Pillow's Image.resize(BICUBIC) on RGB (GR00T N1.6's Eagle fetch_image): the torchvision cases, plus the sizes the
+# released N1.6 setting gives (shortest edge 256, crop 0.95, then smart_resize to multiples of 28).
+PIL_BICUBIC_CASES = BICUBIC_CASES + [
+    ("n16_256x341_252x336", 256, 341, 252, 336, 43, "scene"),
+    ("n16_256x256_252x252", 256, 256, 252, 252, 44, "binary"),
+    ("n16_256x455_252x448", 256, 455, 252, 448, 45, "scene"),
+    ("to_1x1_7x9", 7, 9, 1, 1, 46, "scene"),
 ]
 
 # lerobot's albumentations (cv2) eval transform. kwargs are passed through as lerobot's step passes them.
@@ -275,6 +285,17 @@ def main():
         tensors[f"bicubic/{name}"] = hwc(y)
         cases.append({"name": name, "frame": spec(h, w, seed, kind), "out": [oh, ow]})
     save(tensors, out, "bicubic.safetensors", {"versions": versions, "cases": cases})
+
+    # ---- Pillow bicubic (GR00T N1.6's Eagle processor)
+    tensors, cases = {}, []
+    for name, h, w, oh, ow, seed, kind in PIL_BICUBIC_CASES:
+        img = synth(h, w, seed, kind)
+        y = np.asarray(PILImage.fromarray(img, "RGB").resize((ow, oh), PILImage.BICUBIC), dtype=np.uint8)
+        assert y.shape == (oh, ow, 3), (name, y.shape)
+        tensors[f"pil/{name}"] = np.ascontiguousarray(y)
+        cases.append({"name": name, "frame": spec(h, w, seed, kind), "out": [oh, ow]})
+    save(tensors, out, "pil_bicubic.safetensors", {"versions": {**versions, "pillow": version("pillow")},
+                                                   "cases": cases})
 
     # ---- lerobot geometry, both paths
     tensors, cases, geometry_out = {}, [], {}
