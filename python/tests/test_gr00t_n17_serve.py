@@ -3,13 +3,17 @@
 action groups, as the checkpoint's processor_config.json names them), answers get_action per action group, and agrees
 with HTTP /act on the same seed; an observation missing a group or a camera is a clear error. openpi_client, Tether ZMQ
 and tritonclient get the same chunk as /act, and `tether go --model gr00t-n1.7` pulls, exports one embodiment and
-serves it."""
+serves it; the action guard, adaptive steps, the deadline and traces act on a GR00T chunk."""
 
 from __future__ import annotations
 
 import base64
 import json
 import os
+import shutil
+import subprocess
+import sys
+import time
 
 import numpy as np
 import pytest
@@ -182,9 +186,6 @@ def test_a_missing_camera_is_refused_on_every_transport(all_transports):
 def test_go_pulls_exports_and_serves_one_embodiment(tmp_path):
     """The registry's gr00t-n1.7 served by a local hub: the fixture checkpoint as nvidia/GR00T-N1.7-3B (its config
     naming the real backbone id) and the stand-in backbone files as nvidia/Cosmos-Reason2-2B."""
-    import shutil
-    import subprocess
-    import sys
 
     ckpt = tmp_path / "repo"
     shutil.copytree(CASE / "checkpoint", ckpt)
@@ -238,3 +239,67 @@ def test_rtc_keeps_the_delayed_actions_on_the_leftover(all_transports):
     np.testing.assert_allclose(new[:2], leftover[:2], atol=1e-5 * max(1.0, float(np.abs(leftover).max())))
     plain = http_act(all_transports.port, 22)
     assert np.abs(new[:2] - leftover[:2]).max() < np.abs(plain[:2] - leftover[:2]).max()
+
+
+# -- the safety wedges and traces on a GR00T checkpoint -------------------------------------------------------------
+
+def act_body(seed: int, task: str = TASK) -> bytes:
+    images = {cam: {"data": base64.b64encode(img.tobytes()).decode(), "shape": list(img.shape)}
+              for cam, img in frames().items()}
+    return json.dumps({"instruction": task, "state": STATE["arm"] + STATE["gripper"] + STATE["base"],
+                       "images": images, "seed": seed}).encode()
+
+
+def post(port: int, body: bytes):
+    status, _, raw = request(port, "POST", "/act", body, {"Content-Type": "application/json"})
+    return status, json.loads(raw)
+
+
+def test_guard_adaptive_steps_and_traces(tmp_path):
+    # A 7-joint arm (6 + gripper) allowing |x| <= 0.05 and 0.2 units/s: the model's chunk goes past both.
+    joints = [{"name": f"j{i}", "min": -0.05, "max": 0.05, "min_position": -0.05, "max_position": 0.05,
+               "max_velocity": 0.2} for i in range(7)]
+    arm = tmp_path / "arm.json"
+    arm.write_text(json.dumps({"name": "test-arm", "description": "7 values", "units": "rad",
+                               "control_rate_hz": 10, "source": "test", "joints": joints}))
+    audit, traces = tmp_path / "audit.jsonl", tmp_path / "traces"
+    proc = ServeProcess(["--embodiment-tag", "new_embodiment", "--custom-embodiment-config", str(arm),
+                         "--audit-log", str(audit), "--adaptive-threshold", "0.5", "--record", str(traces),
+                         "--record-fsync", "every_line"], env={"HF_HUB_CACHE": str(HUB)}, checkpoint=CASE / "checkpoint")
+    try:
+        status, a = post(proc.port, act_body(1))
+        assert status == 200, a
+        assert a["guard_clamped"] is True and a["guard_violations"], a
+        actions = np.asarray(a["actions"])
+        assert np.abs(actions).max() <= 0.05 + 1e-5
+        assert np.abs(np.diff(actions, axis=0)).max() <= 0.02 + 1e-5
+        assert 1 <= a["denoise_steps_used"] <= 4
+        bad = json.loads(act_body(2))
+        bad["state"] = [1.0, 2.0]
+        status, err = post(proc.port, json.dumps(bad).encode())
+        assert status == 400 and err["error"]["code"] == "invalid_state", err
+    finally:
+        assert proc.stop() == 0, proc.stderr_tail()
+    assert a["request_id"] in audit.read_text()
+    out = subprocess.run([str(binary_path()), "traces", "query", "--dir", str(traces), "--output",
+                          str(tmp_path / "records.json")], capture_output=True, text=True)
+    assert out.returncode == 0, out.stderr
+    records = json.loads((tmp_path / "records.json").read_text())
+    assert len(records) == 2, records
+    assert records[0]["task"] == TASK and records[0]["status"] == "success"
+    assert records[1]["http_status"] == 400
+
+
+def test_deadline_answers_with_the_last_good_chunk():
+    proc = ServeProcess(["--embodiment-tag", "new_embodiment", "--deadline-ms", "150", "--inject-latency-ms", "700"],
+                        env={"HF_HUB_CACHE": str(HUB)}, checkpoint=CASE / "checkpoint")
+    try:
+        status, first = post(proc.port, act_body(3))
+        assert status == 504 and first["error"]["code"] == "deadline_exceeded", first
+        time.sleep(1.2)  # the late pass finishes and becomes the last good chunk
+        status, second = post(proc.port, act_body(3))
+        assert status == 200, second
+        assert second["action_source"] == "last_good" and second["deadline_exceeded"] is True
+        assert second["advanced_steps"] >= 1 and len(second["actions"]) == CHUNK
+    finally:
+        assert proc.stop() == 0, proc.stderr_tail()
