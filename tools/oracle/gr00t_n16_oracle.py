@@ -1,7 +1,17 @@
 """Writes a tiny GR00T N1.6 checkpoint in NVIDIA's raw on-disk layout and records N1.6 block by block.
 
 Usage:
-  gr00t_n16_oracle.py [--out DIR]     (default tests/fixtures/gr00t_n16)
+  gr00t_n16_oracle.py [fixtures] [--out DIR]          the tiny fixtures (default tests/fixtures/gr00t_n16)
+  gr00t_n16_oracle.py full-size [--out DIR] [--check-only]
+                      random-weight checkpoint with the real N1.6 sizes in bfloat16 shards + index, and an Eagle
+                      directory with the real sizes and token ids beside it (<out>/nvidia/Eagle-Block2A-2B-v2), for
+                      benchmarks, not committed; default ${TETHER_CACHE:-~/.cache/tether}/checkpoints/
+                      gr00t_n16-full-random. Built on the meta device and written tensor by tensor (one seeded
+                      generator), then checked against the network built on the meta device from the written
+                      configs; --check-only runs only that check. 2,975,968,192 parameters (vision
+                      427,680,704 incl. the unused pooling head, mlp1 13,644,800, Qwen3 16 layers + embeddings
+                      1,116,018,688, action head 1,418,624,000), 1105 tensors in 3 shards, 5.95 GB; about 1.5
+                      minutes and 3.6 GB peak RSS on 2 cores.
 
 N1.6's reference (Isaac-GR00T's `Gr00tN1d6`) is not on PyPI, imports flash-attn and cannot run here, so the
 oracle is assembled from upstream classes wherever they exist and restates the rest from the Isaac-GR00T source:
@@ -38,6 +48,7 @@ import io
 import json
 import logging
 import math
+import os
 import re
 import shutil
 import sys
@@ -246,10 +257,13 @@ CHAT_TEMPLATE = (
 )
 
 
-def build_tokenizer():
+def build_tokenizer(fill_to: int | None = None):
+    """The trained 512-entry BPE + Qwen3's 26 added tokens + the Eagle tokens; `fill_to` pads the base vocabulary
+    (gr00t_oracle.train_tokenizer) so the added tokens land on the real ids (151643 -> <|endoftext|> 151643, ...,
+    <IMG_CONTEXT> 151669)."""
     from tokenizers import AddedToken
 
-    tok = train_tokenizer(TINY_BASE_VOCAB)
+    tok = train_tokenizer(TINY_BASE_VOCAB, fill_to)
     first = tok.get_vocab_size()
     for i, content in enumerate(EAGLE_ADDED):
         tok.add_special_tokens([AddedToken(content, special=True, normalized=False, lstrip=False, rstrip=False)])
@@ -262,11 +276,12 @@ def added_list():
     return [(c, s) for c, s in QWEN3_VL_ADDED] + [(c, True) for c in EAGLE_ADDED]
 
 
-def write_eagle_dir(d: Path, tok) -> dict[str, int]:
+def write_eagle_dir(d: Path, tok, *, vision: dict = SIGLIP2, text: dict = QWEN3,
+                    vocab_size: int = VOCAB_SIZE) -> dict[str, int]:
     """The stand-in for gr00t/model/modules/nvidia/Eagle-Block2A-2B-v2/: tokenizer files as a Qwen2Tokenizer
     directory has them (vocab.json, merges.txt, added_tokens.json, tokenizer_config.json, special_tokens_map.json)
     plus tokenizer.json, chat_template.json, the Eagle3 image processor and processor configs, and the tiny
-    Eagle3_VLConfig (config.json)."""
+    Eagle3_VLConfig (config.json; the full-size command passes the real sizes)."""
     from tokenizers import Tokenizer
 
     if d.exists():
@@ -332,7 +347,7 @@ def write_eagle_dir(d: Path, tok) -> dict[str, int]:
         "video_placeholder": "video",
         "video_token": "<IMG_CONTEXT>",
     }))
-    (d / "config.json").write_text(dump_json(eagle_config(ids)))
+    (d / "config.json").write_text(dump_json(eagle_config(ids, vision=vision, text=text, vocab_size=vocab_size)))
     # the vocab.json / merges.txt pair must rebuild the same tokenizer as tokenizer.json
     from tokenizers import models
 
@@ -344,11 +359,12 @@ def write_eagle_dir(d: Path, tok) -> dict[str, int]:
     return ids
 
 
-def eagle_config(ids: dict[str, int]) -> dict:
-    """Eagle3_VLConfig (configuration_eagle3_vl.py) with the tiny SigLIP2 / Qwen3 sizes."""
-    vision = dict(SIGLIP2, model_type="siglip2_vision_model", use_rope=False, use_windows_attn=False,
+def eagle_config(ids: dict[str, int], *, vision: dict = SIGLIP2, text: dict = QWEN3,
+                 vocab_size: int = VOCAB_SIZE) -> dict:
+    """Eagle3_VLConfig (configuration_eagle3_vl.py) with the given SigLIP2 / Qwen3 sizes (default the tiny ones)."""
+    vision = dict(vision, model_type="siglip2_vision_model", use_rope=False, use_windows_attn=False,
                   window_size=14, full_attention_indexes=[], vision_use_head=True)
-    text = dict(QWEN3, architectures=["Qwen3ForCausalLM"], model_type="qwen3", vocab_size=VOCAB_SIZE,
+    text = dict(text, architectures=["Qwen3ForCausalLM"], model_type="qwen3", vocab_size=vocab_size,
                 bos_token_id=ids["<|endoftext|>"], eos_token_id=ids["<|im_end|>"], use_cache=False,
                 attention_dropout=0.0, initializer_range=0.02, use_sliding_window=False)
     return {
@@ -374,31 +390,33 @@ def eagle_config(ids: dict[str, int]) -> dict:
 
 class TinyN16(torch.nn.Module):
     """backbone.model.{vision_model (transformers Siglip2VisionModel), mlp1, language_model.model (transformers
-    Qwen3Model, select_layer layers)} + action_head (lerobot GR00TN17ActionHead without VL self-attention)."""
+    Qwen3Model, select_layer layers)} + action_head (lerobot GR00TN17ActionHead without VL self-attention).
+    Tiny sizes by default; the full-size command builds it with the real ones on the meta device."""
 
-    def __init__(self):
+    def __init__(self, *, vision: dict = SIGLIP2, text: dict = QWEN3, select_layer: int = SELECT_LAYER,
+                 vocab_size: int = VOCAB_SIZE, head: dict = HEAD):
         super().__init__()
         from lerobot.policies.groot.groot_n1_7 import GR00TN17ActionHead, GR00TN17Config
         from transformers import Qwen3Config, Qwen3Model, Siglip2VisionConfig, Siglip2VisionModel
 
-        vcfg = Siglip2VisionConfig(**SIGLIP2)
+        vcfg = Siglip2VisionConfig(**vision)
         vcfg._attn_implementation = "eager"
-        tcfg = Qwen3Config(**dict(QWEN3, num_hidden_layers=SELECT_LAYER), vocab_size=VOCAB_SIZE)
+        tcfg = Qwen3Config(**dict(text, num_hidden_layers=select_layer), vocab_size=vocab_size)
         tcfg._attn_implementation = "eager"
         self.backbone = torch.nn.Module()
         self.backbone.model = torch.nn.Module()
         bm = self.backbone.model
         bm.vision_model = Siglip2VisionModel(vcfg)
-        width = SIGLIP2["hidden_size"] * int(1 / DOWNSAMPLE) ** 2
+        width = vision["hidden_size"] * int(1 / DOWNSAMPLE) ** 2
         bm.mlp1 = torch.nn.Sequential(
             torch.nn.LayerNorm(width),
-            torch.nn.Linear(width, QWEN3["hidden_size"]),
+            torch.nn.Linear(width, text["hidden_size"]),
             torch.nn.GELU(),
-            torch.nn.Linear(QWEN3["hidden_size"], QWEN3["hidden_size"]),
+            torch.nn.Linear(text["hidden_size"], text["hidden_size"]),
         )
         bm.language_model = torch.nn.Module()
         bm.language_model.model = Qwen3Model(tcfg)
-        hcfg = GR00TN17Config(**HEAD, state_history_length=1,
+        hcfg = GR00TN17Config(**head, state_history_length=1,
                               vl_self_attention_cfg={"num_layers": 0})
         with contextlib.redirect_stdout(io.StringIO()):
             self.action_head = GR00TN17ActionHead(hcfg)
@@ -434,8 +452,8 @@ def randomize(model: torch.nn.Module, seed: int) -> dict:
     return rules
 
 
-def gr00t_config_json() -> dict:
-    """config.json with every Gr00tN1d6Config field (gr00t/configs/model/gr00t_n1d6.py), tiny values."""
+def gr00t_config_json(head: dict = HEAD, select_layer: int = SELECT_LAYER, image: dict = IMAGE) -> dict:
+    """config.json with every Gr00tN1d6Config field (gr00t/configs/model/gr00t_n1d6.py), tiny values by default."""
     cfg = {
         "architectures": ["Gr00tN1d6"],
         "model_type": "Gr00tN1d6",
@@ -446,10 +464,10 @@ def gr00t_config_json() -> dict:
         "backbone_model_type": "eagle",
         "model_revision": None,
         "tune_top_llm_layers": 4,
-        "backbone_embedding_dim": HEAD["backbone_embedding_dim"],
+        "backbone_embedding_dim": head["backbone_embedding_dim"],
         "tune_llm": False,
         "tune_visual": False,
-        "select_layer": SELECT_LAYER,
+        "select_layer": select_layer,
         "reproject_vision": False,
         "use_flash_attention": True,
         "load_bf16": True,
@@ -458,8 +476,8 @@ def gr00t_config_json() -> dict:
         "backbone_trainable_params_fp32": True,
         "image_crop_size": None,
         "image_target_size": None,
-        "shortest_image_edge": IMAGE["shortest_image_edge"],
-        "crop_fraction": IMAGE["crop_fraction"],
+        "shortest_image_edge": image["shortest_image_edge"],
+        "crop_fraction": image["crop_fraction"],
         "random_rotation_angle": None,
         "color_jitter_params": None,
         "use_albumentations_transforms": True,
@@ -473,7 +491,7 @@ def gr00t_config_json() -> dict:
         "tune_vlln": True,
         "state_additive_noise_scale": 0.0,
     }
-    cfg.update({k: v for k, v in HEAD.items()})
+    cfg.update({k: v for k, v in head.items()})
     return dict(sorted(cfg.items()))
 
 
@@ -532,25 +550,26 @@ def modality_config(emb: dict) -> dict:
     }
 
 
-def processor_config() -> dict:
+def processor_config(embodiments: dict = EMBODIMENTS, image: dict = IMAGE, max_dim: int = MAX_DIM,
+                     horizon: int = MODEL_HORIZON) -> dict:
     """processor_config.json as Gr00tN1d6Processor.save_pretrained lays it out."""
     return {
         "processor_class": "Gr00tN1d6Processor",
         "processor_kwargs": {
-            "modality_configs": {tag: modality_config(e) for tag, e in EMBODIMENTS.items()},
+            "modality_configs": {tag: modality_config(e) for tag, e in embodiments.items()},
             "image_crop_size": None,
             "image_target_size": None,
             "use_albumentations": True,
             "random_rotation_angle": None,
             "color_jitter_params": None,
-            "shortest_image_edge": IMAGE["shortest_image_edge"],
-            "crop_fraction": IMAGE["crop_fraction"],
+            "shortest_image_edge": image["shortest_image_edge"],
+            "crop_fraction": image["crop_fraction"],
             "model_name": "nvidia/Eagle-Block2A-2B-v2",
             "model_type": "eagle",
             "formalize_language": True,
-            "max_state_dim": MAX_DIM,
-            "max_action_dim": MAX_DIM,
-            "max_action_horizon": MODEL_HORIZON,
+            "max_state_dim": max_dim,
+            "max_action_dim": max_dim,
+            "max_action_horizon": horizon,
             "use_percentiles": False,
             "clip_outliers": True,
             "apply_sincos_state_encoding": True,
@@ -1292,13 +1311,224 @@ def check_tokenizer(tok, raw_tok) -> None:
             raise RuntimeError(f"AutoTokenizer vs tokenizers differ on {text!r}: {a} vs {b}")
 
 
+# ----------------------------------------------------------------------------------------------
+# Full-size random checkpoint (benchmarks, not committed)
+
+CACHE = Path(os.environ.get("TETHER_CACHE", Path.home() / ".cache" / "tether"))
+EAGLE_NAME = "nvidia/Eagle-Block2A-2B-v2"
+FULL_SEED = 7
+FULL_SHARD_BYTES = 2 * 1024**3
+FULL_SIGLIP2 = dict(SIGLIP2, hidden_size=1152, intermediate_size=4304, num_hidden_layers=27, num_attention_heads=16,
+                    num_patches=256)
+FULL_QWEN3 = dict(QWEN3, hidden_size=2048, intermediate_size=6144, num_hidden_layers=28, num_attention_heads=16,
+                  num_key_value_heads=8, head_dim=128, max_position_embeddings=40960)
+FULL_SELECT_LAYER = 16
+FULL_VOCAB_SIZE = 151680  # embedding rows of Eagle-Block2A-2B-v2's Qwen3 (151672 tokens)
+REAL_IDS = {"<|endoftext|>": 151643, "<|im_start|>": 151644, "<|im_end|>": 151645, "<IMG_CONTEXT>": 151669,
+            "<img>": 151670, "</img>": 151671}
+FULL_HORIZON = 50
+FULL_MAX_DIM = 128
+FULL_HEAD = dict(
+    HEAD,
+    backbone_embedding_dim=FULL_QWEN3["hidden_size"],
+    hidden_size=1024,
+    input_embedding_dim=1536,
+    max_state_dim=FULL_MAX_DIM,
+    max_action_dim=FULL_MAX_DIM,
+    action_horizon=FULL_HORIZON,
+    max_seq_len=1024,
+    diffusion_model_cfg=dict(HEAD["diffusion_model_cfg"], num_layers=32, num_attention_heads=32,
+                             attention_head_dim=48, output_dim=1024),
+)
+FULL_IMAGE = {"shortest_image_edge": 256, "crop_fraction": 0.95}
+FULL_EMBODIMENTS = {
+    "new_embodiment": dict(
+        video=["front"],
+        state=[("arm", 7), ("gripper", 1)],
+        sin_cos=[],
+        mean_std=[],
+        action=[("arm", 7), ("gripper", 1)],
+        action_types=["NON_EEF", "NON_EEF"],
+        language="annotation.human.task_description",
+        horizon=16,
+        degenerate={},
+        seed=71,
+    ),
+}
+
+
+def full_meta_model(ckpt: Path) -> TinyN16:
+    """The composite network (transformers Siglip2VisionModel + Qwen3Model, lerobot GR00TN17ActionHead without VL
+    self-attention) on the meta device, sized from the written config.json and <model_name>/config.json."""
+    cfg = json.loads((ckpt / "config.json").read_text())
+    ecfg = json.loads((ckpt / cfg["model_name"] / "config.json").read_text())
+    vision = {k: ecfg["vision_config"][k] for k in SIGLIP2}
+    text = {k: ecfg["text_config"][k] for k in QWEN3}
+    head = {k: cfg[k] for k in HEAD}
+    with torch.device("meta"), contextlib.redirect_stderr(io.StringIO()):
+        return TinyN16(vision=vision, text=text, select_layer=cfg["select_layer"],
+                       vocab_size=ecfg["text_config"]["vocab_size"], head=head)
+
+
+def full_layout(model: torch.nn.Module) -> dict[str, tuple[int, ...]]:
+    """Tensor names and shapes the checkpoint stores: the state_dict (no lm_head: Qwen3Model, embeddings tied)."""
+    return {k: tuple(v.shape) for k, v in model.state_dict().items()}
+
+
+def full_value(model: torch.nn.Module, name: str, gen: torch.Generator) -> torch.Tensor:
+    """randomize()'s rule for one tensor (gr00t_oracle.init_value; the pooling head's in_proj_bias as a bias)."""
+    if name.endswith("in_proj_bias"):
+        shape = tuple(model.get_parameter(name).shape)
+        return torch.randn(shape, generator=gen).mul_(0.05)
+    return init_value(model, name, gen)[0]
+
+
+def check_full_eagle(eagle: Path) -> dict[str, int]:
+    """The Eagle directory loads with AutoTokenizer, encodes as tokenizer.json does and has the real ids."""
+    from tokenizers import Tokenizer
+    from transformers import AutoTokenizer
+
+    raw = Tokenizer.from_file(str(eagle / "tokenizer.json"))
+    tok = AutoTokenizer.from_pretrained(str(eagle))
+    check_tokenizer(tok, raw)
+    for content, want in REAL_IDS.items():
+        if tok.convert_tokens_to_ids(content) != want or raw.token_to_id(content) != want:
+            raise RuntimeError(f"{content}: {tok.convert_tokens_to_ids(content)} / {raw.token_to_id(content)}, "
+                               f"wanted {want}")
+    ecfg = json.loads((eagle / "config.json").read_text())
+    if ecfg["image_token_index"] != REAL_IDS["<IMG_CONTEXT>"] or ecfg["text_config"]["vocab_size"] < len(tok):
+        raise RuntimeError("eagle config.json: image_token_index / vocab_size")
+    return {c: tok.convert_tokens_to_ids(c) for c in REAL_IDS}
+
+
+def check_full_size(out: Path) -> int:
+    """The written shards against the composite network built on the meta device from the written configs: the
+    same tensor names and shapes, all bfloat16, an index naming every tensor; and the Eagle tokenizer's ids."""
+    from safetensors import safe_open
+
+    want = full_layout(full_meta_model(out))
+    index = json.loads((out / "model.safetensors.index.json").read_text())
+    have: dict[str, tuple] = {}
+    for shard in sorted(set(index["weight_map"].values())):
+        with safe_open(str(out / shard), "pt") as f:
+            for k in f.keys():
+                sl = f.get_slice(k)
+                have[k] = (tuple(sl.get_shape()), sl.get_dtype())
+                if index["weight_map"][k] != shard:
+                    raise RuntimeError(f"{k} is in {shard}, the index says {index['weight_map'][k]}")
+    if set(want) != set(have) or set(index["weight_map"]) != set(want):
+        raise RuntimeError(f"names differ: {sorted(set(want) ^ set(have))[:10]}")
+    for k, shape in want.items():
+        if have[k] != (shape, "BF16"):
+            raise RuntimeError(f"{k}: file {have[k]}, model {shape} BF16")
+    n = sum(math.prod(s) for s in want.values())
+    if index["metadata"]["total_size"] != 2 * n:
+        raise RuntimeError("index total_size")
+    cfg = json.loads((out / "config.json").read_text())
+    ids = check_full_eagle(out / cfg["model_name"])
+    print(f"checked {out}: {len(have)} tensors, {n} parameters, bfloat16, match the N1.6 network built from its "
+          f"config.json and {cfg['model_name']}/config.json; tokenizer ids {ids}")
+    return n
+
+
+def cmd_full_size(args) -> None:
+    import resource
+    import time
+
+    from safetensors.torch import save_file
+
+    out = Path(args.out or CACHE / "checkpoints" / "gr00t_n16-full-random")
+    if args.check_only:
+        check_full_size(out)
+        return
+    torch.set_num_threads(max(1, os.cpu_count() or 1))
+    started = time.time()
+    if out.exists():
+        shutil.rmtree(out)
+    out.mkdir(parents=True)
+    (out / "config.json").write_text(
+        json.dumps(gr00t_config_json(FULL_HEAD, FULL_SELECT_LAYER, FULL_IMAGE), indent=2) + "\n")
+    (out / "processor_config.json").write_text(
+        json.dumps(processor_config(FULL_EMBODIMENTS, FULL_IMAGE, FULL_MAX_DIM, FULL_HORIZON), indent=2) + "\n")
+    (out / "statistics.json").write_text(
+        json.dumps({tag: embodiment_statistics(e) for tag, e in FULL_EMBODIMENTS.items()}, indent=2) + "\n")
+    (out / "embodiment_id.json").write_text(json.dumps(N16_EMBODIMENT_IDS, indent=2) + "\n")
+    raw_tok = build_tokenizer(fill_to=REAL_IDS["<|endoftext|>"])
+    ids = write_eagle_dir(out / EAGLE_NAME, raw_tok, vision=FULL_SIGLIP2, text=FULL_QWEN3, vocab_size=FULL_VOCAB_SIZE)
+    if {c: ids[c] for c in REAL_IDS} != REAL_IDS:
+        raise RuntimeError(f"token ids {ids}")
+    print(f"wrote {out / EAGLE_NAME} ({time.time() - started:.0f} s)")
+
+    model = full_meta_model(out)
+    layout = full_layout(model)
+    gen = torch.Generator().manual_seed(FULL_SEED)
+    shards: list[list[str]] = [[]]
+    size = 0
+    for name, shape in layout.items():
+        nbytes = math.prod(shape) * 2
+        if shards[-1] and size + nbytes > FULL_SHARD_BYTES:
+            shards.append([])
+            size = 0
+        shards[-1].append(name)
+        size += nbytes
+    weight_map: dict[str, str] = {}
+    total_params = 0
+    for i, group in enumerate(shards):
+        fname = f"model-{i + 1:05d}-of-{len(shards):05d}.safetensors"
+        tensors = {}
+        for name in group:
+            tensors[name] = full_value(model, name, gen).to(torch.bfloat16)
+            weight_map[name] = fname
+            total_params += tensors[name].numel()
+        save_file(tensors, str(out / fname), metadata={"format": "pt"})
+        (out / fname).chmod(0o644)
+        del tensors
+        print(f"wrote {fname} ({len(group)} tensors, {time.time() - started:.0f} s)")
+    index = {"metadata": {"total_size": 2 * total_params}, "weight_map": dict(sorted(weight_map.items()))}
+    (out / "model.safetensors.index.json").write_text(json.dumps(index, indent=2) + "\n")
+    del model
+    elapsed = time.time() - started
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024**2
+    (out / "README.md").write_text(
+        "Random-weight GR00T N1.6 checkpoint with the real sizes (Eagle-Block2A-2B-v2 backbone: SigLIP2 27 x 1152, "
+        "mlp1 4608 -> 2048, Qwen3 2048 wide with 16 of its 28 layers stored, vocabulary 151680; 32-block "
+        "AlternateVLDiT 32 x 48, no VL self-attention; max state / action dim 128, action horizon 50), for "
+        "benchmarks only.\n"
+        f"Generated by `{GENERATOR} full-size` in {elapsed:.0f} s (peak RSS {peak:.1f} GB): {total_params} "
+        f"parameters in {len(shards)} bfloat16 shards, every tensor drawn from one seeded normal generator (seed "
+        f"{FULL_SEED}; norm weights near 1, small biases, matrices scaled by 1/sqrt(fan_in)).\n"
+        "Embodiment `new_embodiment` (projector row 10), one camera `front`, state and action groups arm (7) + "
+        "gripper (1), min/max normalisation, 16 valid action steps; processor_config.json: shortest_image_edge "
+        "256, crop_fraction 0.95, albumentations path, sin/cos state encoding on (no sin/cos keys).\n"
+        f"`{EAGLE_NAME}/` stands in for Isaac-GR00T's vendored Eagle directory (where Tether looks first): the real "
+        "Eagle3_VLConfig sizes and a byte-level BPE tokenizer padded to 151643 entries so that the special tokens "
+        "have Qwen3's / Eagle's real ids (<|endoftext|> 151643, <|im_start|> 151644, <|im_end|> 151645, "
+        "<IMG_CONTEXT> 151669, <img> 151670, </img> 151671).\n"
+    )
+    print(json.dumps({"out": str(out), "params": total_params, "tensors": len(layout), "shards": len(shards),
+                      "seconds": round(elapsed, 1), "peak_rss_gb": round(peak, 2)}))
+    check_full_size(out)
+
+
 def main(argv: list[str] | None = None) -> None:
     torch.set_num_threads(1)
+    argv = sys.argv[1:] if argv is None else list(argv)
+    logging.getLogger("lerobot").setLevel(logging.ERROR)
+    logging.getLogger("transformers").setLevel(logging.ERROR)
+    if argv and argv[0] == "full-size":
+        fs = argparse.ArgumentParser(prog="gr00t_n16_oracle.py full-size",
+                                     description="random-weight N1.6 checkpoint with the real sizes (benchmarks)")
+        fs.add_argument("--out", default="",
+                        help="default ${TETHER_CACHE:-~/.cache/tether}/checkpoints/gr00t_n16-full-random")
+        fs.add_argument("--check-only", action="store_true",
+                        help="only compare an existing checkpoint with the network built from its configs")
+        cmd_full_size(fs.parse_args(argv[1:]))
+        return
+    if argv and argv[0] == "fixtures":
+        argv = argv[1:]
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--out", default=str(REPO_ROOT / "tests" / "fixtures" / "gr00t_n16"))
     args = p.parse_args(argv)
-    logging.getLogger("lerobot").setLevel(logging.ERROR)
-    logging.getLogger("transformers").setLevel(logging.ERROR)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     for sub in ("checkpoint", "eagle", "blocks", "cases"):
