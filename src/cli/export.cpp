@@ -122,8 +122,10 @@ double export_checkpoint(const std::string& src, const std::string& out_dir, con
       fs::copy_file(bundle.from / name, out / bundle.to / name, fs::copy_options::overwrite_existing);
   }
   std::ofstream(out / "config.json", std::ios::binary | std::ios::trunc) << plan.config.dump(4) << "\n";
-  for (const auto& [name, content] : plan.written)
+  for (const auto& [name, content] : plan.written) {
+    fs::create_directories((out / name).parent_path());
     std::ofstream(out / name, std::ios::binary | std::ios::trunc) << content.dump(4) << "\n";
+  }
   const std::set<std::string> keep(plan.keep_dtype.begin(), plan.keep_dtype.end());
   for (const auto& name : weights) {
     fs::create_directories((out / name).parent_path());

@@ -30,6 +30,11 @@ struct Gr00tEmbodiment {
   std::vector<float> state_lo, state_hi, action_lo, action_hi;
 };
 
+// A sidecar file of a raw GR00T checkpoint (processor_config.json, statistics.json, embodiment_id.json): in the
+// checkpoint's root, as NVIDIA's releases have them, else in its `processor/` sub-folder, where Isaac-GR00T's training
+// runs write them. Neither present: the root path, for the error to name.
+std::filesystem::path gr00t_sidecar(const std::filesystem::path& dir, const std::string& name);
+
 // The embodiment `tag` of the checkpoint in `dir` (empty: its only one); errors list the tags it has.
 Gr00tEmbodiment read_gr00t_embodiment(const std::filesystem::path& dir, const std::string& tag);
 

@@ -32,8 +32,8 @@ Normalization load_normalization_n17(const fs::path& dir, const Json&, TensorSto
   Normalization n;
   FeatureNorm state{"STATE", NormMode::min_max_clipped, false, {{"min", e.state_lo}, {"max", e.state_hi}}};
   FeatureNorm action{"ACTION", NormMode::min_max_clipped, false, {{"min", e.action_lo}, {"max", e.action_hi}}};
-  finish_feature("state", state, (dir / "statistics.json").string(), n.warnings);
-  finish_feature("action", action, (dir / "statistics.json").string(), n.warnings);
+  finish_feature("state", state, gr00t_sidecar(dir, "statistics.json").string(), n.warnings);
+  finish_feature("action", action, gr00t_sidecar(dir, "statistics.json").string(), n.warnings);
   n.input.features["state"] = state;
   n.output.features["action"] = action;
   return n;
@@ -45,7 +45,7 @@ Normalization load_normalization_n16(const fs::path& dir, const Json&, TensorSto
   const Gr00tEmbodiment e = read_gr00t_embodiment(dir, options.embodiment);
   Normalization n;
   FeatureNorm action{"ACTION", NormMode::min_max_clipped, false, {{"min", e.action_lo}, {"max", e.action_hi}}};
-  finish_feature("action", action, (dir / "statistics.json").string(), n.warnings);
+  finish_feature("action", action, gr00t_sidecar(dir, "statistics.json").string(), n.warnings);
   n.output.features["action"] = action;
   return n;
 }
@@ -57,16 +57,17 @@ ExportPlan export_plan(const fs::path& dir, const Json& config, const LoadOption
                        const std::string& default_backbone) {
   ExportPlan plan;
   if (options.embodiment.empty()) {
-    for (const char* f : kSidecars) plan.copy.push_back(f);
+    for (const char* f : kSidecars) plan.copy.push_back(fs::relative(gr00t_sidecar(dir, f), dir).string());
   } else {
     const Gr00tEmbodiment e = read_gr00t_embodiment(dir, options.embodiment);  // an unknown tag lists the known ones
-    Json processor = read_json_file((dir / "processor_config.json").string());
+    auto sidecar = [&](const char* name) { return fs::relative(gr00t_sidecar(dir, name), dir).string(); };
+    Json processor = read_json_file(gr00t_sidecar(dir, "processor_config.json").string());
     Json& modalities = processor.at("processor_kwargs").at("modality_configs");
     modalities = Json{{e.tag, modalities.at(e.tag)}};
-    const Json stats = read_json_file((dir / "statistics.json").string());
-    plan.written.push_back({"processor_config.json", processor});
-    plan.written.push_back({"statistics.json", Json{{e.tag, stats.at(e.tag)}}});
-    plan.written.push_back({"embodiment_id.json", Json{{e.tag, e.id}}});
+    const Json stats = read_json_file(gr00t_sidecar(dir, "statistics.json").string());
+    plan.written.push_back({sidecar("processor_config.json"), processor});
+    plan.written.push_back({sidecar("statistics.json"), Json{{e.tag, stats.at(e.tag)}}});
+    plan.written.push_back({sidecar("embodiment_id.json"), Json{{e.tag, e.id}}});
   }
   const std::string name = config.value("model_name", default_backbone);
   if (fs::path(name).is_absolute())

@@ -16,8 +16,13 @@ using backend::Activation;
 using backend::Ptr;
 
 // processor_config.json's processor_kwargs (the checkpoint's processing settings).
+fs::path gr00t_sidecar(const fs::path& dir, const std::string& name) {
+  if (fs::is_regular_file(dir / name) || !fs::is_regular_file(dir / "processor" / name)) return dir / name;
+  return dir / "processor" / name;
+}
+
 Json gr00t_processor_kwargs(const fs::path& dir) {
-  const fs::path p = dir / "processor_config.json";
+  const fs::path p = gr00t_sidecar(dir, "processor_config.json");
   if (!fs::is_regular_file(p)) throw Error(ErrorCode::not_found, p.string() + ": missing (GR00T's processing settings)");
   const Json j = read_json_file(p.string());
   if (!j.contains("processor_kwargs") || !j.at("processor_kwargs").is_object())
@@ -86,7 +91,7 @@ void libero_gripper_transform(std::vector<float>& actions, const std::vector<Mod
 
 Gr00tEmbodiment read_gr00t_embodiment(const fs::path& dir, const std::string& wanted) {
   const Json kwargs = gr00t_processor_kwargs(dir);
-  const std::string where = (dir / "processor_config.json").string();
+  const std::string where = gr00t_sidecar(dir, "processor_config.json").string();
   if (!kwargs.contains("modality_configs") || !kwargs.at("modality_configs").is_object() ||
       kwargs.at("modality_configs").empty())
     throw Error(ErrorCode::format, where + ": processor_kwargs has no modality_configs");
@@ -106,7 +111,7 @@ Gr00tEmbodiment read_gr00t_embodiment(const fs::path& dir, const std::string& wa
   e.tag = tag;
   const Json& m = modalities.at(tag);
 
-  const fs::path ids_path = dir / "embodiment_id.json";
+  const fs::path ids_path = gr00t_sidecar(dir, "embodiment_id.json");
   if (!fs::is_regular_file(ids_path))
     throw Error(ErrorCode::not_found, ids_path.string() + ": missing (which weights row each embodiment uses)");
   const Json ids = read_json_file(ids_path.string());
@@ -130,7 +135,7 @@ Gr00tEmbodiment read_gr00t_embodiment(const fs::path& dir, const std::string& wa
   if (json_get_or<bool>(kwargs, "use_relative_action", false, where))
     throw Error(ErrorCode::unsupported, where + ": use_relative_action is not supported yet");
 
-  const fs::path stats_path = dir / "statistics.json";
+  const fs::path stats_path = gr00t_sidecar(dir, "statistics.json");
   if (!fs::is_regular_file(stats_path))
     throw Error(ErrorCode::not_found, stats_path.string() + ": missing (GR00T's normalisation statistics)");
   const Json stats = read_json_file(stats_path.string());

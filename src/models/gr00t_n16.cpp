@@ -92,7 +92,7 @@ Gr00tN16::Gr00tN16(const fs::path& dir, const Json& config, TensorStore store, c
   if (head_.vl_layers != 0) throw Error(ErrorCode::format, where + ": N1.6 has no VL self-attention");
   embodiment_ = read_gr00t_embodiment(dir, options.embodiment);
   const Json kwargs = gr00t_processor_kwargs(dir);
-  const std::string pwhere = (dir / "processor_config.json").string();
+  const std::string pwhere = gr00t_sidecar(dir, "processor_config.json").string();
   geometry_ = vision::Gr00tImageGeometry::from_n16_processor_kwargs(kwargs, pwhere);
   formalize_ = json_get_or<bool>(kwargs, "formalize_language", true, pwhere);
   clip_outliers_ = json_get_or<bool>(kwargs, "clip_outliers", true, pwhere);
@@ -103,7 +103,7 @@ Gr00tN16::Gr00tN16(const fs::path& dir, const Json& config, TensorStore store, c
   const Json modality = kwargs.at("modality_configs").at(embodiment_.tag).value("state", Json::object());
   const std::vector<std::string> sin_cos_keys = key_list(modality, "sin_cos_embedding_keys"),
                                   mean_std_keys = key_list(modality, "mean_std_embedding_keys");
-  const fs::path stats_path = dir / "statistics.json";
+  const fs::path stats_path = gr00t_sidecar(dir, "statistics.json");
   const Json stats = read_json_file(stats_path.string()).at(embodiment_.tag).at("state");
   int64_t encoded = 0;
   for (const auto& g : embodiment_.state_groups) {

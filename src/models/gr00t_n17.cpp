@@ -66,7 +66,7 @@ Gr00tN17::Gr00tN17(const fs::path& dir, const Json& config, TensorStore store, c
   head_ = Gr00tHeadConfig::from_json(config, where, "nvidia/Cosmos-Reason2-2B");
   embodiment_ = read_gr00t_embodiment(dir, options.embodiment);
   const Json kwargs = gr00t_processor_kwargs(dir);
-  const std::string pwhere = (dir / "processor_config.json").string();
+  const std::string pwhere = gr00t_sidecar(dir, "processor_config.json").string();
   geometry_ = vision::Gr00tImageGeometry::from_processor_kwargs(kwargs, pwhere);
   formalize_ = json_get_or<bool>(kwargs, "formalize_language", true, pwhere);
   if (!json_get_or<bool>(kwargs, "clip_outliers", true, pwhere))

@@ -107,6 +107,33 @@ TEST(Gr00tCli, ExportOfOneEmbodimentIsVerifiedAndValidates) {
   fs::remove_all(root);
 }
 
+// Isaac-GR00T's training runs write the sidecars into a `processor/` sub-folder: read from there, and exported there.
+TEST(Gr00tCli, SidecarsInAProcessorFolderAreFound) {
+  const fs::path ckpt = tether::testing::scratch_dir() / "gr00t_processor_folder";
+  fs::remove_all(ckpt);
+  fs::create_directories(ckpt / "processor");
+  for (const auto& e : fs::directory_iterator(kCase / "checkpoint")) {
+    const std::string name = e.path().filename().string();
+    const bool sidecar = name == "processor_config.json" || name == "statistics.json" || name == "embodiment_id.json";
+    fs::copy_file(e.path(), sidecar ? ckpt / "processor" / name : ckpt / name);
+  }
+  CliRun r = run_gr00t("predict " + ckpt.string() + observation(" --embodiment-tag new_embodiment --seed 3 --json"));
+  ASSERT_EQ(r.code, 0) << r.err;
+  const CliRun root = run_gr00t("predict " + (kCase / "checkpoint").string() +
+                                observation(" --embodiment-tag new_embodiment --seed 3 --json"));
+  ASSERT_EQ(root.code, 0) << root.err;
+  EXPECT_EQ(tether::Json::parse(r.out).at("actions"), tether::Json::parse(root.out).at("actions"));
+  const fs::path out = tether::testing::scratch_dir() / "gr00t_processor_folder_export";
+  fs::remove_all(out);
+  r = run_gr00t("export " + ckpt.string() + " -o " + out.string() + " --embodiment-tag new_embodiment");
+  ASSERT_EQ(r.code, 0) << r.err;
+  EXPECT_TRUE(fs::exists(out / "processor" / "embodiment_id.json"));
+  r = run_gr00t("validate export " + out.string());
+  EXPECT_EQ(r.code, 0) << r.out << r.err;
+  fs::remove_all(out);
+  fs::remove_all(ckpt);
+}
+
 TEST(Gr00tCli, EmbodimentAndObservationErrorsAreOneLine) {
   const std::string ckpt = (kCase / "checkpoint").string();
   struct Bad {
