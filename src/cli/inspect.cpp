@@ -1,4 +1,5 @@
 // `tether inspect`: deployment targets (`inspect targets`) and what a checkpoint contains (`inspect model`).
+#include <algorithm>
 #include <cstdio>
 #include <filesystem>
 #include <iostream>
@@ -19,6 +20,14 @@ std::string data_file(const std::string& name) {
 }
 
 namespace {
+
+// The state's and the action's normalisation, one line per feature (what /config reports too).
+std::vector<std::string> normalization_lines(const policy::Policy& p) {
+  std::vector<std::string> lines = p.input_normalizer().describe();
+  for (const auto& line : p.output_normalizer().describe())  // lerobot's pre-processor may list the action too
+    if (std::find(lines.begin(), lines.end(), line) == lines.end()) lines.push_back(line);
+  return lines;
+}
 
 struct InspectArgs {
   std::string model;
@@ -67,7 +76,7 @@ int run_model(const InspectArgs& a) {
                     {"parameters", params},
                     {"parameters_by_dtype", by_dtype},
                     {"tensors", f.names().size()},
-                    {"normalization", policy->input_normalizer().describe()},
+                    {"normalization", normalization_lines(*policy)},
                     {"warnings", policy->load_warnings()}};
   if (a.json) {
     std::cout << out.dump(2) << "\n";

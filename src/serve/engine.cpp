@@ -2,6 +2,7 @@
 // batcher that calls it.
 #include "serve/engine.h"
 
+#include <algorithm>
 #include <filesystem>
 
 #include "backend/cpu/packed_linear.h"
@@ -20,6 +21,9 @@ Engine load_policy_engine(const std::string& checkpoint_dir, const models::LoadO
   e.spec = p->spec();
   e.load_warnings = p->load_warnings();
   e.normalization = p->input_normalizer().describe();
+  for (const auto& line : p->output_normalizer().describe())  // lerobot's pre-processor may list the action too
+    if (std::find(e.normalization.begin(), e.normalization.end(), line) == e.normalization.end())
+      e.normalization.push_back(line);
   e.gemm = cpu::gemm_name(p->spec().precision);
   e.precision = cpu::precision_name(p->spec().precision);
   e.compute = cpu::compute_mode(p->spec().precision);
