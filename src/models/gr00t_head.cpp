@@ -15,12 +15,12 @@ namespace fs = std::filesystem;
 using backend::Activation;
 using backend::Ptr;
 
-// processor_config.json's processor_kwargs (the checkpoint's processing settings).
 fs::path gr00t_sidecar(const fs::path& dir, const std::string& name) {
   if (fs::is_regular_file(dir / name) || !fs::is_regular_file(dir / "processor" / name)) return dir / name;
   return dir / "processor" / name;
 }
 
+// processor_config.json's processor_kwargs (the checkpoint's processing settings).
 Json gr00t_processor_kwargs(const fs::path& dir) {
   const fs::path p = gr00t_sidecar(dir, "processor_config.json");
   if (!fs::is_regular_file(p)) throw Error(ErrorCode::not_found, p.string() + ": missing (GR00T's processing settings)");
@@ -201,7 +201,6 @@ Gr00tHeadConfig Gr00tHeadConfig::from_json(const Json& c, const std::string& whe
   if (h.steps < 1) throw Error(ErrorCode::format, where + ": num_inference_timesteps must be >= 1");
   return h;
 }
-
 
 namespace {
 
