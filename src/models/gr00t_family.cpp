@@ -56,11 +56,12 @@ Normalization load_normalization_n16(const fs::path& dir, const Json&, TensorSto
 ExportPlan export_plan(const fs::path& dir, const Json& config, const LoadOptions& options,
                        const std::string& default_backbone) {
   ExportPlan plan;
+  // Lexically: hub snapshots are symlinks into the blob store, which fs::relative would follow.
   if (options.embodiment.empty()) {
-    for (const char* f : kSidecars) plan.copy.push_back(fs::relative(gr00t_sidecar(dir, f), dir).string());
+    for (const char* f : kSidecars) plan.copy.push_back(gr00t_sidecar(dir, f).lexically_relative(dir).string());
   } else {
     const Gr00tEmbodiment e = read_gr00t_embodiment(dir, options.embodiment);  // an unknown tag lists the known ones
-    auto sidecar = [&](const char* name) { return fs::relative(gr00t_sidecar(dir, name), dir).string(); };
+    auto sidecar = [&](const char* name) { return gr00t_sidecar(dir, name).lexically_relative(dir).string(); };
     Json processor = read_json_file(gr00t_sidecar(dir, "processor_config.json").string());
     Json& modalities = processor.at("processor_kwargs").at("modality_configs");
     modalities = Json{{e.tag, modalities.at(e.tag)}};
