@@ -1,5 +1,6 @@
 // The shared Euler sampler on synthetic velocity fields: the default path is the plain loop bit for bit, adaptive
-// stopping (jump, per-item step counts, batch independence), RTC guidance arithmetic and lerobot's prefix weights.
+// stopping (jump, per-item step counts, batch independence), RTC guidance arithmetic and lerobot's prefix weights, and
+// GR00T's inpainting RTC.
 #include <gtest/gtest.h>
 
 #include <cmath>
@@ -269,4 +270,47 @@ TEST(EulerSample, RunsFromZeroToOneAsGr00tDoes) {
   EXPECT_THROW(euler_sample(cpu_backend(), Ptr<float>(x.data()), Ptr<float>(vb.data()), {1, kChunk, kWidth, kActionDim},
                             Schedule{0.0, 1.0, 4}, {c}, as_velocity(velocity)),
                Error);
+}
+
+// GR00T's inpainting RTC: which leftover rows are kept, the per-row scale, and the sampler keeping frozen rows fixed.
+TEST(InpaintingRtc, KeepsTheFirstHorizonRowsDropsTrailingZeroRowsAndClampsTheDelay) {
+  // 3 leftover rows of 2 action values; row 2 is all zero.
+  const std::vector<float> leftover = {0.5f, -0.5f, 0.25f, 0.0f, 0.0f, 0.0f};
+  DenoiseControl c;
+  inpainting_rtc(leftover, kActionDim, kWidth, kChunk, /*horizon=*/8, /*delay=*/5, 6.0f, c);
+  // The trailing zero row is dropped: 2 rows, both frozen (the delay is clamped to them), padding dims 0.
+  EXPECT_EQ(c.inpaint_prefix, (std::vector<float>{0.5f, -0.5f, 0.0f, 0.25f, 0.0f, 0.0f}));
+  EXPECT_EQ(c.velocity_scale, (std::vector<float>{0.0f, 0.0f, 1.0f, 1.0f}));
+  // The horizon cuts the leftover first; no delay: the kept rows ramp in towards 1.
+  inpainting_rtc(leftover, kActionDim, kWidth, kChunk, /*horizon=*/1, /*delay=*/0, 6.0f, c);
+  ASSERT_EQ(c.inpaint_prefix.size(), std::size_t(kWidth));
+  const float r1 = 1.0f - std::exp(-6.0f * 0.5f), r2 = 1.0f - std::exp(-6.0f);
+  EXPECT_NEAR(c.velocity_scale[0], r1 / r2, 1e-7);
+  EXPECT_EQ(c.velocity_scale[1], 1.0f);
+  // A leftover of zeros leaves RTC off.
+  inpainting_rtc(std::vector<float>(4, 0.0f), kActionDim, kWidth, kChunk, 4, 1, 6.0f, c);
+  EXPECT_TRUE(c.inpaint_prefix.empty());
+  EXPECT_TRUE(c.velocity_scale.empty());
+}
+
+TEST(InpaintingRtc, FrozenRowsStayOnTheLeftoverAndOthersFollowTheField) {
+  const auto velocity = field({1.0f});
+  const std::vector<float> leftover = {0.5f, -0.5f, 0.25f, 0.75f};
+  DenoiseControl c;
+  inpainting_rtc(leftover, kActionDim, kWidth, kChunk, 2, 1, 6.0f, c);
+  std::vector<float> x = start_noise(1);
+  const std::vector<float> noise = x;
+  sample(x, 4, {c}, velocity);
+  // Row 0 frozen: exactly the leftover (its padding value 0 too); row 1 started from the leftover and moved;
+  // rows 2-3 went on from the noise as plain Euler would move them.
+  EXPECT_EQ(std::vector<float>(x.begin(), x.begin() + kWidth), (std::vector<float>{0.5f, -0.5f, 0.0f}));
+  EXPECT_NE(x[kWidth], 0.25f);
+  // The field is element-wise, so rows 2-3 equal plain Euler from the same noise, bit for bit.
+  const std::vector<float> plain = plain_euler(noise, 4, velocity);
+  EXPECT_EQ(std::vector<float>(x.begin() + 2 * kWidth, x.end()), std::vector<float>(plain.begin() + 2 * kWidth, plain.end()));
+  // Guidance and inpainting together are refused.
+  c.rtc_target.assign(std::size_t(kSize), 0.0f);
+  c.rtc_weights.assign(std::size_t(kChunk), 1.0f);
+  std::vector<float> y = start_noise(1);
+  EXPECT_THROW(sample(y, 4, {c}, velocity), Error);
 }
