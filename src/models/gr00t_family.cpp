@@ -26,28 +26,30 @@ std::vector<std::string> weight_files(const fs::path& dir) { return TensorStore:
 
 TensorStore open_weights(const fs::path& dir) { return TensorStore::open_dir(dir.string()); }
 
-// The state and action bounds of the served embodiment, applied as lerobot's N1.7 pack and decode steps apply them.
-Normalization load_normalization_n17(const fs::path& dir, const Json&, TensorStore&, const LoadOptions& options) {
+// The served embodiment's bounds, min-max and clipped as lerobot's N1.7 pack and decode steps (and Isaac-GR00T's
+// StateActionProcessor for N1.6's actions) apply them. N1.6 encodes its state itself (sin/cos, mean/std or min/max
+// per group: the model file), so only N1.7 normalises the state here.
+Normalization gr00t_normalization(const fs::path& dir, const LoadOptions& options, bool state) {
   const Gr00tEmbodiment e = read_gr00t_embodiment(dir, options.embodiment);
+  const std::string stats = gr00t_sidecar(dir, "statistics.json").string();
   Normalization n;
-  FeatureNorm state{"STATE", NormMode::min_max_clipped, false, {{"min", e.state_lo}, {"max", e.state_hi}}};
+  if (state) {
+    FeatureNorm f{"STATE", NormMode::min_max_clipped, false, {{"min", e.state_lo}, {"max", e.state_hi}}};
+    finish_feature("state", f, stats, n.warnings);
+    n.input.features["state"] = f;
+  }
   FeatureNorm action{"ACTION", NormMode::min_max_clipped, false, {{"min", e.action_lo}, {"max", e.action_hi}}};
-  finish_feature("state", state, gr00t_sidecar(dir, "statistics.json").string(), n.warnings);
-  finish_feature("action", action, gr00t_sidecar(dir, "statistics.json").string(), n.warnings);
-  n.input.features["state"] = state;
+  finish_feature("action", action, stats, n.warnings);
   n.output.features["action"] = action;
   return n;
 }
 
-// N1.6 encodes its state itself (sin/cos, mean/std or min/max per group: the model file); the action is decoded with
-// min/max (q01/q99 with use_percentiles), clipped, as Isaac-GR00T's StateActionProcessor.unapply_action does.
+Normalization load_normalization_n17(const fs::path& dir, const Json&, TensorStore&, const LoadOptions& options) {
+  return gr00t_normalization(dir, options, true);
+}
+
 Normalization load_normalization_n16(const fs::path& dir, const Json&, TensorStore&, const LoadOptions& options) {
-  const Gr00tEmbodiment e = read_gr00t_embodiment(dir, options.embodiment);
-  Normalization n;
-  FeatureNorm action{"ACTION", NormMode::min_max_clipped, false, {{"min", e.action_lo}, {"max", e.action_hi}}};
-  finish_feature("action", action, gr00t_sidecar(dir, "statistics.json").string(), n.warnings);
-  n.output.features["action"] = action;
-  return n;
+  return gr00t_normalization(dir, options, false);
 }
 
 // The sidecar files are copied, or, when one embodiment is exported, written narrowed to it (its modality config,

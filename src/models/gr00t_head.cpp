@@ -245,6 +245,54 @@ void Gr00tModel::head_state(const ModelInput& in, float* out) const {
   std::copy(in.state.begin(), in.state.end(), out);
 }
 
+std::vector<std::pair<int64_t, int64_t>> Gr00tModel::embed_prompt(const backend::Table& embed,
+                                                                  const std::vector<int32_t>& ids, int32_t image_token,
+                                                                  Ptr<const float> rows, int64_t row_count,
+                                                                  int64_t width, int64_t item,
+                                                                  backend::Array<int64_t>& ids_buffer, Ptr<float> x,
+                                                                  Backbone& b) {
+  backend::Backend& be = *be_;
+  const int64_t L = int64_t(ids.size());
+  if (ids_buffer.size() < L) ids_buffer = be.alloc<int64_t>(L);
+  const std::vector<int64_t> ids64(ids.begin(), ids.end());
+  be.upload(ids64.data(), L, ids_buffer.at());
+  be.gather_rows(embed, ids_buffer.at(), L, 1.0f, x);
+  b.len = L;
+  b.image_mask.assign(std::size_t(L), 0);
+  std::vector<std::pair<int64_t, int64_t>> runs;
+  int64_t image_rows = 0;
+  for (int64_t i = 0; i < L;) {
+    if (ids[std::size_t(i)] != image_token) {
+      ++i;
+      continue;
+    }
+    int64_t j = i;
+    while (j < L && ids[std::size_t(j)] == image_token) b.image_mask[std::size_t(j++)] = 1;
+    runs.emplace_back(i, j - i);
+    image_rows += j - i;
+    i = j;
+  }
+  if (image_rows != row_count)
+    throw Error(ErrorCode::invalid_argument, "observation " + std::to_string(item) + ": the prompt has " +
+                                                 std::to_string(image_rows) + " image tokens for " +
+                                                 std::to_string(row_count) +
+                                                 " image rows (does the instruction hold image tokens of its own?)");
+  int64_t row = 0;
+  for (const auto& [first, n] : runs) {
+    be.copy_rows(rows + row * width, width, x + first * width, width, n, width);
+    row += n;
+  }
+  return runs;
+}
+
+void Gr00tModel::upload_causal_mask(int64_t len, backend::Array<uint8_t>& mask) {
+  std::vector<uint8_t> causal(std::size_t(len * len), 0);
+  for (int64_t i = 0; i < len; ++i)
+    for (int64_t j = 0; j <= i; ++j) causal[std::size_t(i * len + j)] = 1;
+  if (mask.size() < len * len) mask = be_->alloc<uint8_t>(len * len);
+  be_->upload(causal.data(), len * len, mask.at());
+}
+
 void Gr00tModel::load_head(Weights& w, cpu::Precision precision) {
   backend::Backend& be = *be_;
   const int64_t D = head_.backbone_dim, Din = head_.input_dim, Hd = head_.hidden;

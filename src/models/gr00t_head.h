@@ -54,6 +54,17 @@ class Gr00tModel : public Model {
   // state as the policy passes it (N1.7); N1.6 encodes its raw state itself.
   virtual void head_state(const ModelInput& in, float* out) const;
 
+  // The prompt's token embeddings into x [len, width], with `rows` (the images' rows in order, row_count of them) in
+  // place of the runs of `image_token`; sets b.len and b.image_mask and returns the runs (first token, length).
+  // Throws invalid_argument when the runs and the rows differ (an instruction holding image tokens of its own).
+  std::vector<std::pair<int64_t, int64_t>> embed_prompt(const backend::Table& embed, const std::vector<int32_t>& ids,
+                                                        int32_t image_token, backend::Ptr<const float> rows,
+                                                        int64_t row_count, int64_t width, int64_t item,
+                                                        backend::Array<int64_t>& ids_buffer, backend::Ptr<float> x,
+                                                        Backbone& b);
+  // A causal [len, len] mask (nonzero: may attend) in `mask`, grown as needed.
+  void upload_causal_mask(int64_t len, backend::Array<uint8_t>& mask);
+
   // Loads the head (after head_ and embodiment_ are set) and fills the spec fields it decides.
   void load_head(Weights& w, cpu::Precision precision);
   void fill_spec(const FamilyDescriptor& family, const std::string& tokenizer_source, int64_t image_h, int64_t image_w,

@@ -300,41 +300,14 @@ Gr00tModel::Backbone Gr00tN16::encode_backbone(const ModelInput& in, int64_t ite
   t0 = std::chrono::steady_clock::now();
   grow(be, x_, L * D);
   grow(be, features_, L * D);
-  if (ids_.size() < L) ids_ = be.alloc<int64_t>(L);
   if (positions_.size() < L) positions_ = be.alloc<int64_t>(L);
-  const std::vector<int64_t> ids64(ids.begin(), ids.end());
-  be.upload(ids64.data(), L, ids_.at());
-  be.gather_rows(*embed_, ids_.at(), L, 1.0f, x_.at());
   Backbone b;
-  b.len = L;
-  b.image_mask.assign(std::size_t(L), 0);
-  int64_t image_row = 0;
-  for (int64_t i = 0; i < L;) {
-    if (ids[std::size_t(i)] != image_token_) {
-      ++i;
-      continue;
-    }
-    int64_t j = i;
-    while (j < L && ids[std::size_t(j)] == image_token_) b.image_mask[std::size_t(j++)] = 1;
-    if (image_row + (j - i) > rows_total)
-      throw Error(ErrorCode::invalid_argument, "observation " + std::to_string(item) +
-                                                   ": the instruction holds <IMG_CONTEXT> tokens of its own");
-    be.copy_rows(image_rows_.at(image_row * D), D, x_.at(i * D), D, j - i, D);
-    image_row += j - i;
-    i = j;
-  }
-  if (image_row != rows_total)
-    throw Error(ErrorCode::invalid_argument, "observation " + std::to_string(item) +
-                                                 ": the prompt's image tokens and the images' rows differ");
+  embed_prompt(*embed_, ids, image_token_, image_rows_.at(), rows_total, D, item, ids_, x_.at(), b);
   if (dumping()) dump_array<float>(be, "mid.inputs_embeds", DType::f32, {1, L, D}, x_.at());
   std::vector<int64_t> positions(static_cast<std::size_t>(L));
   for (int64_t i = 0; i < L; ++i) positions[std::size_t(i)] = i;
   be.upload(positions.data(), L, positions_.at());
-  std::vector<uint8_t> causal(std::size_t(L * L), 0);
-  for (int64_t i = 0; i < L; ++i)
-    for (int64_t j = 0; j <= i; ++j) causal[std::size_t(i * L + j)] = 1;
-  if (causal_.size() < L * L) causal_ = be.alloc<uint8_t>(L * L);
-  be.upload(causal.data(), L * L, causal_.at());
+  upload_causal_mask(L, causal_);
   KvCache cache;
   cache.resize(be, text_.layers(), 1, L, text_cfg_.kv_heads * text_cfg_.head_dim);
   text_.forward(be, x_.at(), 1, L, positions_.at(), causal_.at(), cache);

@@ -253,41 +253,16 @@ Gr00tModel::Backbone Gr00tN17::encode_backbone(const ModelInput& in, int64_t ite
   // added after its first layers, then the VL norm and self-attention.
   t0 = std::chrono::steady_clock::now();
   grow(be, x_, L * D);
-  if (ids_.size() < L) ids_ = be.alloc<int64_t>(L);
-  const std::vector<int64_t> ids64(ids.begin(), ids.end());
-  be.upload(ids64.data(), L, ids_.at());
-  be.gather_rows(*embed_, ids_.at(), L, 1.0f, x_.at());
-  std::vector<std::pair<int64_t, int64_t>> image_runs;  // (first token, length)
   Backbone p;
-  p.len = L;
-  p.image_mask.assign(std::size_t(L), 0);
-  for (int64_t i = 0; i < L;) {
-    if (ids[std::size_t(i)] != image_token_) {
-      ++i;
-      continue;
-    }
-    int64_t j = i;
-    while (j < L && ids[std::size_t(j)] == image_token_) p.image_mask[std::size_t(j++)] = 1;
-    image_runs.emplace_back(i, j - i);
-    i = j;
-  }
-  int64_t image_row = 0;
-  for (const auto& [first, n] : image_runs) {
-    be.copy_rows(merged_.at(image_row * D), D, x_.at(first * D), D, n, D);
-    image_row += n;
-  }
-  if (image_row != M) throw Error(ErrorCode::internal, "gr00t: image tokens and image rows differ");
+  const std::vector<std::pair<int64_t, int64_t>> image_runs =
+      embed_prompt(*embed_, ids, image_token_, merged_.at(), M, D, item, ids_, x_.at(), p);
   if (dumping()) dump_array<float>(be, "mid.llm.inputs_embeds", DType::f32, {1, L, D}, x_.at());
 
   grow(be, rope_cos_, L * text_cfg_.head_dim / 2);
   grow(be, rope_sin_, L * text_cfg_.head_dim / 2);
   be.upload(cs.data(), int64_t(cs.size()), rope_cos_.at());
   be.upload(sn.data(), int64_t(sn.size()), rope_sin_.at());
-  std::vector<uint8_t> causal(std::size_t(L * L), 0);
-  for (int64_t i = 0; i < L; ++i)
-    for (int64_t j = 0; j <= i; ++j) causal[std::size_t(i * L + j)] = 1;
-  if (causal_.size() < L * L) causal_ = be.alloc<uint8_t>(L * L);
-  be.upload(causal.data(), L * L, causal_.at());
+  upload_causal_mask(L, causal_);
   KvCache cache;
   cache.resize(be, text_.layers(), 1, L, text_cfg_.kv_heads * text_cfg_.head_dim);
   const int64_t layers = text_.layers();
