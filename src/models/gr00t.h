@@ -48,6 +48,9 @@ std::string gr00t_formalize_language(const std::string& instruction, bool formal
 bool gr00t_applies_libero_transform(const std::string& embodiment_tag);
 void libero_gripper_transform(std::vector<float>& actions, const std::vector<ModalityGroup>& action_groups);
 
+// True when two loaded models are embodiments of one shared GR00T checkpoint (its weights held once).
+bool gr00t_shares_weights(const Model& a, const Model& b);
+
 std::unique_ptr<Model> load_gr00t_n16(const std::filesystem::path& dir, const Json& config, TensorStore weights,
                                       const LoadOptions& options);
 std::unique_ptr<Model> load_gr00t_n17(const std::filesystem::path& dir, const Json& config, TensorStore weights,

@@ -4,6 +4,7 @@
 #include <algorithm>
 #include <chrono>
 #include <cmath>
+#include <map>
 
 #include "core/error.h"
 #include "models/blocks/linear.h"
@@ -205,19 +206,21 @@ Gr00tHeadConfig Gr00tHeadConfig::from_json(const Json& c, const std::string& whe
 namespace {
 
 // A category-specific linear layer (`W` [categories, in, out], `b` [categories, out]) for one category, packed as an
-// ordinary linear layer (its W is stored input-major, the transpose of nn.Linear's).
+// ordinary linear layer (its W is stored input-major, the transpose of nn.Linear's). Only that category's rows are
+// converted: the other embodiments' rows never stay resident.
 std::unique_ptr<backend::LinearWeights> load_category_linear(backend::Backend& be, Weights& w, const std::string& name,
                                                              int64_t categories, int64_t in, int64_t out, int64_t id,
                                                              cpu::Precision precision) {
   if (id < 0 || id >= categories)
     throw Error(ErrorCode::format, name + ": embodiment row " + std::to_string(id) + " is outside its " +
                                        std::to_string(categories) + " rows");
-  const float* W = w.f32(name + ".W", {categories, in, out}) + id * in * out;
-  const float* b = w.f32(name + ".b", {categories, out}) + id * out;
+  std::vector<float> W(static_cast<std::size_t>(in * out)), b(static_cast<std::size_t>(out));
+  w.raw(name + ".W", {categories, in, out}).copy_f32(id * in * out, in * out, W.data());
+  w.raw(name + ".b", {categories, out}).copy_f32(id * out, out, b.data());
   std::vector<float> t(static_cast<std::size_t>(in * out));
   for (int64_t i = 0; i < in; ++i)
-    for (int64_t o = 0; o < out; ++o) t[std::size_t(o * in + i)] = W[i * out + o];
-  return be.pack_linear(t.data(), out, in, b, precision);
+    for (int64_t o = 0; o < out; ++o) t[std::size_t(o * in + i)] = W[std::size_t(i * out + o)];
+  return be.pack_linear(t.data(), out, in, b.data(), precision);
 }
 
 // lerobot's SinusoidalPositionalEncoding of an integer timestep, float32: [sin(t f_k), cos(t f_k)],
@@ -295,7 +298,7 @@ void Gr00tModel::upload_causal_mask(int64_t len, backend::Array<uint8_t>& mask) 
 
 void Gr00tModel::load_head(Weights& w, cpu::Precision precision) {
   backend::Backend& be = *be_;
-  const int64_t D = head_.backbone_dim, Din = head_.input_dim, Hd = head_.hidden;
+  const int64_t D = head_.backbone_dim, Din = head_.input_dim;
   if (head_.use_vlln) {
     vlln_w_ = be.constant(w.f32(std::string(kHead) + "vlln.weight", {D}), D);
     vlln_b_ = be.constant(w.f32(std::string(kHead) + "vlln.bias", {D}), D);
@@ -303,52 +306,70 @@ void Gr00tModel::load_head(Weights& w, cpu::Precision precision) {
   vl_attention_.load(be, w, std::string(kHead) + "vl_self_attention.", head_.vl_layers, head_.vl_heads,
                      head_.vl_head_dim, precision);
   dit_.load(be, w, std::string(kHead) + "model.", head_.dit, precision);
-  const int64_t C = head_.num_embodiments, id = embodiment_.id, S = head_.max_state_dim, A = head_.max_action_dim;
-  const std::string h = kHead;
-  state1_ = load_category_linear(be, w, h + "state_encoder.layer1", C, S, Hd, id, precision);
-  state2_ = load_category_linear(be, w, h + "state_encoder.layer2", C, Hd, Din, id, precision);
-  act1_ = load_category_linear(be, w, h + "action_encoder.W1", C, A, Din, id, precision);
-  act2_ = load_category_linear(be, w, h + "action_encoder.W2", C, 2 * Din, Din, id, precision);
-  act3_ = load_category_linear(be, w, h + "action_encoder.W3", C, Din, Din, id, precision);
-  dec1_ = load_category_linear(be, w, h + "action_decoder.layer1", C, Hd, Hd, id, precision);
-  dec2_ = load_category_linear(be, w, h + "action_decoder.layer2", C, Hd, A, id, precision);
   if (head_.add_pos_embed)
-    action_pos_ = be.constant(w.f32(h + "position_embedding.weight", {head_.max_seq_len, Din}), head_.action_horizon * Din);
+    action_pos_ = be.constant(w.f32(std::string(kHead) + "position_embedding.weight", {head_.max_seq_len, Din}), head_.action_horizon * Din);
 }
 
 void Gr00tModel::fill_spec(const FamilyDescriptor& family, const std::string& tokenizer_source, int64_t image_h,
                            int64_t image_w, cpu::Precision precision, const std::string& weights_dtype,
                            const std::string& where) {
-  spec_.family = family.name;
-  spec_.stages = family.stages;
-  spec_.missing_camera_rule = family.missing_camera_rule;
-  spec_.tokenizer = tokenizer_kind_name(family.tokenizer);
-  spec_.tokenizer_source = tokenizer_source;
-  spec_.embodiment = embodiment_.tag;
-  spec_.cameras = embodiment_.cameras;
-  spec_.every_camera_required = true;
-  spec_.state_key = "state";
-  spec_.action_key = "action";
-  spec_.state_groups = embodiment_.state_groups;
-  spec_.action_groups = embodiment_.action_groups;
-  spec_.state_dim = 0;
-  for (const auto& g : spec_.state_groups) spec_.state_dim += g.dim;
-  spec_.action_dim = 0;
-  for (const auto& g : spec_.action_groups) spec_.action_dim += g.dim;
-  spec_.max_state_dim = head_.max_state_dim;
-  spec_.max_action_dim = head_.max_action_dim;
-  spec_.chunk_size = std::min(embodiment_.action_horizon, head_.action_horizon);
-  spec_.sampled_chunk = head_.action_horizon;
-  spec_.num_steps = head_.steps;
-  spec_.rtc = RtcMethod::inpainting;  // GR00T's own real-time chunking (sampler.h)
-  spec_.rtc_ramp_rate = head_.rtc_ramp_rate;
-  spec_.image_height = image_h;
-  spec_.image_width = image_w;
-  spec_.precision = precision;
-  spec_.weights_dtype = weights_dtype;
-  if (spec_.state_dim > head_.max_state_dim || spec_.action_dim > head_.max_action_dim)
-    throw Error(ErrorCode::format, where + ": embodiment '" + embodiment_.tag + "' has more state or action values than "
-                                           "max_state_dim / max_action_dim");
+  ModelSpec& s = shared_spec_;
+  s.family = family.name;
+  s.stages = family.stages;
+  s.missing_camera_rule = family.missing_camera_rule;
+  s.tokenizer = tokenizer_kind_name(family.tokenizer);
+  s.tokenizer_source = tokenizer_source;
+  s.every_camera_required = true;
+  s.state_key = "state";
+  s.action_key = "action";
+  s.max_state_dim = head_.max_state_dim;
+  s.max_action_dim = head_.max_action_dim;
+  s.sampled_chunk = head_.action_horizon;
+  s.num_steps = head_.steps;
+  s.rtc = RtcMethod::inpainting;  // GR00T's own real-time chunking (sampler.h)
+  s.rtc_ramp_rate = head_.rtc_ramp_rate;
+  s.image_height = image_h;
+  s.image_width = image_w;
+  s.precision = precision;
+  s.weights_dtype = weights_dtype;
+  where_ = where;
+}
+
+std::size_t Gr00tModel::add_embodiment(const fs::path& dir, const std::string& tag, Weights& w) {
+  Gr00tEmbodiment e = read_gr00t_embodiment(dir, tag);
+  for (std::size_t i = 0; i < embodiments_.size(); ++i)
+    if (embodiments_[i]->embodiment.tag == e.tag) return i;
+  auto em = std::make_unique<Embodied>();
+  ModelSpec& s = em->spec;
+  s = shared_spec_;
+  s.embodiment = e.tag;
+  s.cameras = e.cameras;
+  s.state_groups = e.state_groups;
+  s.action_groups = e.action_groups;
+  s.state_dim = 0;
+  for (const auto& g : s.state_groups) s.state_dim += g.dim;
+  s.action_dim = 0;
+  for (const auto& g : s.action_groups) s.action_dim += g.dim;
+  s.chunk_size = std::min(e.action_horizon, head_.action_horizon);
+  if (s.state_dim > head_.max_state_dim || s.action_dim > head_.max_action_dim)
+    throw Error(ErrorCode::format, where_ + ": embodiment '" + e.tag + "' has more state or action values than "
+                                            "max_state_dim / max_action_dim");
+  backend::Backend& be = *be_;
+  const cpu::Precision precision = shared_spec_.precision;
+  const int64_t C = head_.num_embodiments, id = e.id, S = head_.max_state_dim, A = head_.max_action_dim,
+                Din = head_.input_dim, Hd = head_.hidden;
+  const std::string h = kHead;
+  em->state1 = load_category_linear(be, w, h + "state_encoder.layer1", C, S, Hd, id, precision);
+  em->state2 = load_category_linear(be, w, h + "state_encoder.layer2", C, Hd, Din, id, precision);
+  em->act1 = load_category_linear(be, w, h + "action_encoder.W1", C, A, Din, id, precision);
+  em->act2 = load_category_linear(be, w, h + "action_encoder.W2", C, 2 * Din, Din, id, precision);
+  em->act3 = load_category_linear(be, w, h + "action_encoder.W3", C, Din, Din, id, precision);
+  em->dec1 = load_category_linear(be, w, h + "action_decoder.layer1", C, Hd, Hd, id, precision);
+  em->dec2 = load_category_linear(be, w, h + "action_decoder.layer2", C, Hd, A, id, precision);
+  add_state_encoding(dir, e);
+  em->embodiment = std::move(e);
+  embodiments_.push_back(std::move(em));
+  return embodiments_.size() - 1;
 }
 
 void Gr00tModel::velocity(int64_t B, Ptr<const float> x, float time, Ptr<float> v) {
@@ -358,19 +379,20 @@ void Gr00tModel::velocity(int64_t B, Ptr<const float> x, float time, Ptr<float> 
   const int64_t k = std::llround(double(time) * double(head_.steps));
   const int64_t bucket = int64_t((double(k) / double(head_.steps)) * double(head_.buckets));
   const std::string step = dumping() ? "step" + std::to_string(k) : std::string();
+  const Embodied& em = active();
 
   // Action encoder: W1(x), then [W1(x) | sinusoid(bucket)] -> W2 -> swish -> W3, plus the position table. The
   // sinusoid is one row, broadcast into every action row.
-  be.linear(*act1_, x, B * H, act_in_.at(), false, 2 * Din);
+  be.linear(*em.act1, x, B * H, act_in_.at(), false, 2 * Din);
   host_sinusoid_.resize(std::size_t(Din));
   action_time_sinusoid(bucket, Din, host_sinusoid_.data());
   be.upload(host_sinusoid_.data(), Din, act_mid_.at());
   be.copy_rows(act_mid_.at(), 0, act_in_.at(Din), 2 * Din, B * H, Din);
-  be.linear(*act2_, act_in_.at(), B * H, act_mid_.at());
+  be.linear(*em.act2, act_in_.at(), B * H, act_mid_.at());
   be.activate(act_mid_.at(), B * H * Din, Activation::silu);
   // Tokens: the state token, then the encoded actions (with their positions), per item.
   for (int64_t b = 0; b < B; ++b) {
-    be.linear(*act3_, act_mid_.at(b * H * Din), H, tokens_.at((b * T + 1) * Din), false, 0);
+    be.linear(*em.act3, act_mid_.at(b * H * Din), H, tokens_.at((b * T + 1) * Din), false, 0);
     if (dumping() && k == 0 && b == 0)
       dump_array<float>(be, "mid.action_encoder.step0", DType::f32, {1, H, Din}, tokens_.at(Din));
     if (head_.add_pos_embed) be.add(tokens_.at((b * T + 1) * Din), action_pos_.at(), H * Din, tokens_.at((b * T + 1) * Din));
@@ -381,9 +403,9 @@ void Gr00tModel::velocity(int64_t B, Ptr<const float> x, float time, Ptr<float> 
   if (dumping()) dump_array<float>(be, "mid.temb." + step, DType::f32, {B, Din}, temb_.at());
   dit_.forward(be, tokens_.at(), B, T, temb_.at(), kv_, dit_masks_, dit_out_.at());
   if (dumping() && k == 0) dump_array<float>(be, "mid.dit_out.step0", DType::f32, {B, T, head_.hidden}, dit_out_.at());
-  be.linear(*dec1_, dit_out_.at(), B * T, dec_mid_.at());
+  be.linear(*em.dec1, dit_out_.at(), B * T, dec_mid_.at());
   be.activate(dec_mid_.at(), B * T * head_.hidden, Activation::relu);
-  be.linear(*dec2_, dec_mid_.at(), B * T, dec_out_.at());
+  be.linear(*em.dec2, dec_mid_.at(), B * T, dec_out_.at());
   if (dumping()) dump_array<float>(be, "mid.decoder_out." + step, DType::f32, {B, T, A}, dec_out_.at());
   for (int64_t b = 0; b < B; ++b) be.copy_rows(dec_out_.at((b * T + 1) * A), A, v + b * H * A, A, H, A);
 }
@@ -447,6 +469,7 @@ ModelOutput Gr00tModel::predict(const std::vector<ModelInput>& batch) {
   }
 
   // The state token: the state encoder's input (head_state), through the embodiment's state encoder.
+  const Embodied& em = active();
   const int64_t S = head_.max_state_dim;
   std::vector<float> state(std::size_t(B * S), 0.f);
   for (int64_t b = 0; b < B; ++b) head_state(batch[std::size_t(b)], state.data() + b * S);
@@ -455,9 +478,9 @@ ModelOutput Gr00tModel::predict(const std::vector<ModelInput>& batch) {
   grow(be, state_mid_, B * head_.hidden);
   grow(be, state_tok_, B * Din);
   be.upload(state.data(), B * S, state_.at());
-  be.linear(*state1_, state_.at(), B, state_mid_.at());
+  be.linear(*em.state1, state_.at(), B, state_mid_.at());
   be.activate(state_mid_.at(), B * head_.hidden, Activation::relu);
-  be.linear(*state2_, state_mid_.at(), B, state_tok_.at());
+  be.linear(*em.state2, state_mid_.at(), B, state_tok_.at());
   if (dumping()) dump_array<float>(be, "mid.state_features", DType::f32, {B, 1, Din}, state_tok_.at());
   out.timings.set("backbone", out.timings.get("backbone") + elapsed_ms(t0));
 
@@ -484,6 +507,73 @@ ModelOutput Gr00tModel::predict(const std::vector<ModelInput>& batch) {
   if (dumping()) dump_array<float>(be, "out.action_pred", DType::f32, {B, H, A}, noise_x_.at());
   out.flops = be.flops().total() - flops_before;
   return out;
+}
+
+namespace {
+
+// One embodiment of a shared Gr00tModel, as the rest of Tether sees a model.
+class Gr00tEmbodimentModel final : public Model {
+ public:
+  Gr00tEmbodimentModel(std::shared_ptr<Gr00tModel> model, std::size_t slot) : model_(std::move(model)), slot_(slot) {}
+  const ModelSpec& spec() const override { return model_->spec_of(slot_); }
+  ModelOutput predict(const std::vector<ModelInput>& batch) override {
+    std::lock_guard lock(model_->mutex());
+    model_->select(slot_);
+    model_->set_debug_hook(debug_);
+    return model_->predict(batch);
+  }
+  const Gr00tModel* shared() const { return model_.get(); }
+
+ private:
+  std::shared_ptr<Gr00tModel> model_;
+  std::size_t slot_;
+};
+
+// The loaded checkpoints, by what decides their shared part: the directory, the precision and the backend (held by
+// the model, so its address stays unique while the entry can be used). The config is compared too: a directory
+// rewritten in place is loaded anew.
+struct SharedKey {
+  std::string dir;
+  int precision;
+  const backend::Backend* backend;
+  auto operator<=>(const SharedKey&) const = default;
+};
+struct SharedEntry {
+  std::weak_ptr<Gr00tModel> model;
+  Json config;
+};
+std::mutex shared_models_mutex;
+std::map<SharedKey, SharedEntry> shared_models;
+
+}  // namespace
+
+std::unique_ptr<Model> load_gr00t_embodiment(const fs::path& dir, const Json& config, TensorStore store,
+                                             const LoadOptions& options,
+                                             const std::function<std::unique_ptr<Gr00tModel>(TensorStore)>& make) {
+  std::error_code ec;
+  const fs::path canonical = fs::weakly_canonical(dir, ec);
+  const SharedKey key{(ec ? dir : canonical).string(), int(options.precision), options.backend.get()};
+  // Held for the whole load: a second embodiment of a checkpoint being loaded waits for it rather than loading twice.
+  std::lock_guard registry(shared_models_mutex);
+  for (auto it = shared_models.begin(); it != shared_models.end();)  // entries whose models are gone
+    it = it->second.model.expired() ? shared_models.erase(it) : std::next(it);
+  auto it = shared_models.find(key);
+  if (it != shared_models.end() && it->second.config == config) {
+    std::shared_ptr<Gr00tModel> model = it->second.model.lock();
+    std::lock_guard lock(model->mutex());
+    Weights w(std::move(store));  // only this embodiment's category rows are read from it
+    const std::size_t slot = model->add_embodiment(dir, options.embodiment, w);
+    return std::make_unique<Gr00tEmbodimentModel>(std::move(model), slot);
+  }
+  std::shared_ptr<Gr00tModel> model = make(std::move(store));
+  shared_models[key] = {model, config};
+  return std::make_unique<Gr00tEmbodimentModel>(std::move(model), 0);
+}
+
+bool gr00t_shares_weights(const Model& a, const Model& b) {
+  const auto* x = dynamic_cast<const Gr00tEmbodimentModel*>(&a);
+  const auto* y = dynamic_cast<const Gr00tEmbodimentModel*>(&b);
+  return x && y && x->shared() == y->shared();
 }
 
 }  // namespace tether::models

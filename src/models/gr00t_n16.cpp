@@ -42,10 +42,11 @@ class Gr00tN16 final : public Gr00tModel {
  private:
   Backbone encode_backbone(const ModelInput& in, int64_t item, ModelOutput& out) override;
   void head_state(const ModelInput& in, float* out) const override;
+  void add_state_encoding(const fs::path& dir, const Gr00tEmbodiment& e) override;
 
   vision::Gr00tImageGeometry geometry_;
   bool formalize_ = true, clip_outliers_ = true;
-  std::vector<StateGroup> state_groups_;
+  std::vector<std::vector<StateGroup>> state_encodings_;  // per embodiment slot
   std::unique_ptr<text::PretrainedTokenizer> tokenizer_;
   int32_t image_token_ = 0;
 
@@ -90,45 +91,12 @@ Gr00tN16::Gr00tN16(const fs::path& dir, const Json& config, TensorStore store, c
   const cpu::Precision precision = options.precision;
   head_ = Gr00tHeadConfig::from_json(config, where, "nvidia/Eagle-Block2A-2B-v2");
   if (head_.vl_layers != 0) throw Error(ErrorCode::format, where + ": N1.6 has no VL self-attention");
-  embodiment_ = read_gr00t_embodiment(dir, options.embodiment);
+  read_gr00t_embodiment(dir, options.embodiment);  // an unknown tag fails here, before the backbone loads
   const Json kwargs = gr00t_processor_kwargs(dir);
   const std::string pwhere = gr00t_sidecar(dir, "processor_config.json").string();
   geometry_ = vision::Gr00tImageGeometry::from_n16_processor_kwargs(kwargs, pwhere);
   formalize_ = json_get_or<bool>(kwargs, "formalize_language", true, pwhere);
   clip_outliers_ = json_get_or<bool>(kwargs, "clip_outliers", true, pwhere);
-  const bool sin_cos = json_get_or<bool>(kwargs, "apply_sincos_state_encoding", false, pwhere);
-  const bool percentiles = json_get_or<bool>(kwargs, "use_percentiles", false, pwhere);
-
-  // The state groups' encodings and statistics, in modality order.
-  const Json modality = kwargs.at("modality_configs").at(embodiment_.tag).value("state", Json::object());
-  const std::vector<std::string> sin_cos_keys = key_list(modality, "sin_cos_embedding_keys"),
-                                  mean_std_keys = key_list(modality, "mean_std_embedding_keys");
-  const fs::path stats_path = gr00t_sidecar(dir, "statistics.json");
-  const Json stats = read_json_file(stats_path.string()).at(embodiment_.tag).at("state");
-  int64_t encoded = 0;
-  for (const auto& g : embodiment_.state_groups) {
-    StateGroup s;
-    s.dim = g.dim;
-    auto listed = [&](const std::vector<std::string>& keys) {
-      return std::find(keys.begin(), keys.end(), g.name) != keys.end();
-    };
-    if (sin_cos && listed(sin_cos_keys)) {
-      s.kind = StateGroup::Kind::sin_cos;
-    } else if (listed(mean_std_keys)) {
-      s.kind = StateGroup::Kind::mean_std;
-      s.a = stat_values(stats, g.name, "mean", g.dim, stats_path.string());
-      s.b = stat_values(stats, g.name, "std", g.dim, stats_path.string());
-    } else {
-      s.a = stat_values(stats, g.name, percentiles ? "q01" : "min", g.dim, stats_path.string());
-      s.b = stat_values(stats, g.name, percentiles ? "q99" : "max", g.dim, stats_path.string());
-    }
-    encoded += s.kind == StateGroup::Kind::sin_cos ? 2 * s.dim : s.dim;
-    state_groups_.push_back(std::move(s));
-  }
-  if (encoded > head_.max_state_dim)
-    throw Error(ErrorCode::format, pwhere + ": embodiment '" + embodiment_.tag + "' encodes its state into " +
-                                       std::to_string(encoded) + " values, more than max_state_dim " +
-                                       std::to_string(head_.max_state_dim));
 
   // The Eagle directory the config names (Isaac-GR00T vendors it; Tether looks beside the checkpoint, then in the
   // hub cache): its architecture and tokenizer.
@@ -196,13 +164,53 @@ Gr00tN16::Gr00tN16(const fs::path& dir, const Json& config, TensorStore store, c
   load_head(w, precision);
   fill_spec(gr00t_n16_family(), tokenizer_->source, geometry_.resize_edge(), geometry_.resize_edge(), precision,
             w.stored_dtype(), where);
+  add_embodiment(dir, options.embodiment, w);
   w.finish_loading();
+}
+
+void Gr00tN16::add_state_encoding(const fs::path& dir, const Gr00tEmbodiment& e) {
+  // The state groups' encodings and statistics, in modality order.
+  const Json kwargs = gr00t_processor_kwargs(dir);
+  const std::string pwhere = gr00t_sidecar(dir, "processor_config.json").string();
+  const bool sin_cos = json_get_or<bool>(kwargs, "apply_sincos_state_encoding", false, pwhere);
+  const bool percentiles = json_get_or<bool>(kwargs, "use_percentiles", false, pwhere);
+  const Json modality = kwargs.at("modality_configs").at(e.tag).value("state", Json::object());
+  const std::vector<std::string> sin_cos_keys = key_list(modality, "sin_cos_embedding_keys"),
+                                  mean_std_keys = key_list(modality, "mean_std_embedding_keys");
+  const fs::path stats_path = gr00t_sidecar(dir, "statistics.json");
+  const Json stats = read_json_file(stats_path.string()).at(e.tag).at("state");
+  std::vector<StateGroup> groups;
+  int64_t encoded = 0;
+  for (const auto& g : e.state_groups) {
+    StateGroup s;
+    s.dim = g.dim;
+    auto listed = [&](const std::vector<std::string>& keys) {
+      return std::find(keys.begin(), keys.end(), g.name) != keys.end();
+    };
+    if (sin_cos && listed(sin_cos_keys)) {
+      s.kind = StateGroup::Kind::sin_cos;
+    } else if (listed(mean_std_keys)) {
+      s.kind = StateGroup::Kind::mean_std;
+      s.a = stat_values(stats, g.name, "mean", g.dim, stats_path.string());
+      s.b = stat_values(stats, g.name, "std", g.dim, stats_path.string());
+    } else {
+      s.a = stat_values(stats, g.name, percentiles ? "q01" : "min", g.dim, stats_path.string());
+      s.b = stat_values(stats, g.name, percentiles ? "q99" : "max", g.dim, stats_path.string());
+    }
+    encoded += s.kind == StateGroup::Kind::sin_cos ? 2 * s.dim : s.dim;
+    groups.push_back(std::move(s));
+  }
+  if (encoded > head_.max_state_dim)
+    throw Error(ErrorCode::format, pwhere + ": embodiment '" + e.tag + "' encodes its state into " +
+                                       std::to_string(encoded) + " values, more than max_state_dim " +
+                                       std::to_string(head_.max_state_dim));
+  state_encodings_.push_back(std::move(groups));
 }
 
 void Gr00tN16::head_state(const ModelInput& in, float* out) const {
   // numpy's arithmetic: float32 state, float64 statistics, each result stored back to float32.
   int64_t raw = 0, at = 0;
-  for (const StateGroup& g : state_groups_) {
+  for (const StateGroup& g : state_encodings_.at(active_slot())) {
     const float* x = in.state.data() + raw;
     switch (g.kind) {
       case StateGroup::Kind::sin_cos:
@@ -238,7 +246,7 @@ Gr00tModel::Backbone Gr00tN16::encode_backbone(const ModelInput& in, int64_t ite
   auto t0 = std::chrono::steady_clock::now();
   // Frames: every camera of the embodiment, in its order; each keeps its own size (the tower runs per image).
   std::vector<vision::EagleFrame> frames;
-  for (const std::string& cam : spec_.cameras) {
+  for (const std::string& cam : spec().cameras) {
     auto it = in.images.find(cam);
     if (it == in.images.end())
       throw Error(ErrorCode::invalid_argument, "observation " + std::to_string(item) + ": no image for camera '" + cam +
@@ -278,7 +286,7 @@ Gr00tModel::Backbone Gr00tN16::encode_backbone(const ModelInput& in, int64_t ite
     be.upload(f.pixels.data(), 3 * H * W, pixels_.at());
     grow(be, patches_, n * C);
     vision_.forward(be, pixels_.at(), 1, H, W, patches_.at());
-    if (dumping()) dump_array<float>(be, "mid.vision." + spec_.cameras[k], DType::f32, {1, n, C}, patches_.at());
+    if (dumping()) dump_array<float>(be, "mid.vision." + spec().cameras[k], DType::f32, {1, n, C}, patches_.at());
     grow(be, unshuffled_, m * std::max(C4, D));
     for (int64_t y = 0; y < gh / 2; ++y)
       for (int64_t dy = 0; dy < 2; ++dy)
@@ -290,7 +298,7 @@ Gr00tModel::Backbone Gr00tN16::encode_backbone(const ModelInput& in, int64_t ite
     be.linear(*proj_fc1_, proj_mid_.at(), m, unshuffled_.at());
     be.activate(unshuffled_.at(), m * D, backend::Activation::gelu_erf);
     be.linear(*proj_fc2_, unshuffled_.at(), m, image_rows_.at(row * D));
-    if (dumping()) dump_array<float>(be, "mid.projector." + spec_.cameras[k], DType::f32, {m, D}, image_rows_.at(row * D));
+    if (dumping()) dump_array<float>(be, "mid.projector." + spec().cameras[k], DType::f32, {m, D}, image_rows_.at(row * D));
     row += m;
   }
   out.timings.set("vision", out.timings.get("vision") + elapsed_ms(t0));
@@ -322,7 +330,9 @@ Gr00tModel::Backbone Gr00tN16::encode_backbone(const ModelInput& in, int64_t ite
 
 std::unique_ptr<Model> load_gr00t_n16(const fs::path& dir, const Json& config, TensorStore weights,
                                       const LoadOptions& options) {
-  return std::make_unique<Gr00tN16>(dir, config, std::move(weights), options);
+  return load_gr00t_embodiment(dir, config, std::move(weights), options, [&](TensorStore store) {
+    return std::make_unique<Gr00tN16>(dir, config, std::move(store), options);
+  });
 }
 
 }  // namespace tether::models

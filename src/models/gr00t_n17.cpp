@@ -64,7 +64,7 @@ Gr00tN17::Gr00tN17(const fs::path& dir, const Json& config, TensorStore store, c
   backend::Backend& be = *be_;
   const cpu::Precision precision = options.precision;
   head_ = Gr00tHeadConfig::from_json(config, where, "nvidia/Cosmos-Reason2-2B");
-  embodiment_ = read_gr00t_embodiment(dir, options.embodiment);
+  read_gr00t_embodiment(dir, options.embodiment);  // an unknown tag fails here, before the backbone loads
   const Json kwargs = gr00t_processor_kwargs(dir);
   const std::string pwhere = gr00t_sidecar(dir, "processor_config.json").string();
   geometry_ = vision::Gr00tImageGeometry::from_processor_kwargs(kwargs, pwhere);
@@ -125,6 +125,7 @@ Gr00tN17::Gr00tN17(const fs::path& dir, const Json& config, TensorStore store, c
   load_head(w, precision);
   fill_spec(gr00t_n17_family(), tokenizer_->source, geometry_.target_h, geometry_.target_w, precision, w.stored_dtype(),
             where);
+  add_embodiment(dir, options.embodiment, w);
   w.finish_loading();
 }
 
@@ -198,7 +199,7 @@ Gr00tModel::Backbone Gr00tN17::encode_backbone(const ModelInput& in, int64_t ite
   std::vector<vision::PatchGrid> grids;
   std::vector<int64_t> tokens_per_image;
   int64_t rows = 0;
-  for (const std::string& cam : spec_.cameras) {
+  for (const std::string& cam : spec().cameras) {
     auto it = in.images.find(cam);
     if (it == in.images.end())
       throw Error(ErrorCode::invalid_argument, "observation " + std::to_string(item) + ": no image for camera '" + cam +
@@ -287,7 +288,9 @@ Gr00tModel::Backbone Gr00tN17::encode_backbone(const ModelInput& in, int64_t ite
 
 std::unique_ptr<Model> load_gr00t_n17(const fs::path& dir, const Json& config, TensorStore weights,
                                       const LoadOptions& options) {
-  return std::make_unique<Gr00tN17>(dir, config, std::move(weights), options);
+  return load_gr00t_embodiment(dir, config, std::move(weights), options, [&](TensorStore store) {
+    return std::make_unique<Gr00tN17>(dir, config, std::move(store), options);
+  });
 }
 
 }  // namespace tether::models

@@ -56,6 +56,7 @@ class Policy {
 
   const models::ModelSpec& spec() const { return model_->spec(); }
   const models::FamilyDescriptor& family() const { return *family_; }
+  const models::Model& model() const { return *model_; }
   const std::string& directory() const { return dir_; }
   // The weight files, relative to directory() (one file, or an index and its shards).
   const std::vector<std::string>& weight_files() const { return weight_files_; }

@@ -18,6 +18,7 @@
 #include "core/safetensors.h"
 #include "models/blocks/decoder.h"
 #include "models/blocks/vision_tower.h"
+#include "models/gr00t.h"
 #include "models/weights.h"
 #include "policy/policy.h"
 #include "eagle_hub.h"
@@ -214,3 +215,30 @@ TEST_P(Gr00tN16Parity, HalfPrecisionErrorIsBounded) {
 INSTANTIATE_TEST_SUITE_P(Cases, Gr00tN16Parity,
                          ::testing::Values("cam1_libero_panda", "cam2_new_embodiment", "long_instruction"),
                          [](const auto& info) { return info.param; });
+
+// Several embodiments of one N1.6 checkpoint share one load, each with its own state encoding and category rows
+// (the N1.7 test's counterpart, tests/policy/test_gr00t_parity.cpp).
+TEST(Gr00tN16Embodiments, TwoTagsShareOneLoadAndMatchSeparateLoads) {
+  use_eagle_hub();
+  const fs::path checkpoint = kRoot / "checkpoint";
+  auto load = [&](const std::string& tag, std::shared_ptr<backend::Backend> be) {
+    models::LoadOptions options;
+    options.embodiment = tag;
+    options.backend = std::move(be);
+    return policy::Policy::load(checkpoint.string(), options);
+  };
+  auto chunk = [](policy::Policy& p) {
+    policy::Observation o = policy::synthetic_observation(p.spec());
+    for (std::size_t i = 0; i < o.state.size(); ++i) o.state[i] = 0.1f * float(i % 5) - 0.2f;
+    o.instruction = "pick up the cube";
+    o.seed = 3;
+    return p.predict({o}).items.at(0).actions;
+  };
+  const auto be = backend::make_backend("cpu");
+  auto pa = load("libero_panda", be), pb = load("new_embodiment", be);
+  EXPECT_TRUE(models::gr00t_shares_weights(pa->model(), pb->model()));
+  const std::vector<float> a = chunk(*pa), b = chunk(*pb);
+  EXPECT_EQ(chunk(*pa), a);
+  EXPECT_EQ(chunk(*load("libero_panda", backend::make_backend("cpu"))), a);
+  EXPECT_EQ(chunk(*load("new_embodiment", backend::make_backend("cpu"))), b);
+}

@@ -202,3 +202,49 @@ TEST(Gr00tRtc, MatchesLerobotsInpainting) {
 }
 
 }  // namespace
+
+// Several embodiments of one checkpoint in one process: the shared part is loaded once (models::gr00t_shares_weights)
+// and each embodiment, predicting in any order, answers bit for bit what a model loaded for it alone answers.
+std::vector<float> embodiment_chunk(policy::Policy& p, uint64_t seed) {
+  policy::Observation o = policy::synthetic_observation(p.spec());
+  for (std::size_t i = 0; i < o.state.size(); ++i) o.state[i] = 0.1f * float(i % 5) - 0.2f;
+  o.instruction = "pick up the cube";
+  o.seed = seed;
+  return p.predict({o}).items.at(0).actions;
+}
+
+void expect_embodiments_share_one_load(const fs::path& checkpoint, const std::string& a, const std::string& b) {
+  auto load = [&](const std::string& tag, std::shared_ptr<backend::Backend> be) {
+    models::LoadOptions options;
+    options.embodiment = tag;
+    options.backend = std::move(be);
+    return policy::Policy::load(checkpoint.string(), options);
+  };
+  const auto shared_be = backend::make_backend("cpu");
+  auto pa = load(a, shared_be), pb = load(b, shared_be);
+  EXPECT_TRUE(models::gr00t_shares_weights(pa->model(), pb->model()));
+  EXPECT_EQ(pa->spec().embodiment, a);
+  EXPECT_EQ(pb->spec().embodiment, b);
+  const std::vector<float> a1 = embodiment_chunk(*pa, 7), b1 = embodiment_chunk(*pb, 7), a2 = embodiment_chunk(*pa, 7);
+  EXPECT_EQ(a1, a2);
+  // Alone: another backend is another shared part.
+  auto alone_a = load(a, backend::make_backend("cpu"));
+  auto alone_b = load(b, backend::make_backend("cpu"));
+  EXPECT_FALSE(models::gr00t_shares_weights(alone_a->model(), alone_b->model()));
+  EXPECT_FALSE(models::gr00t_shares_weights(pa->model(), alone_a->model()));
+  EXPECT_EQ(a1, embodiment_chunk(*alone_a, 7));
+  EXPECT_EQ(b1, embodiment_chunk(*alone_b, 7));
+  EXPECT_NE(a1, b1);
+  // Loading a tag again reuses its slot; an unknown one is refused and leaves the shared model serving.
+  auto pa_again = load(a, shared_be);
+  EXPECT_TRUE(models::gr00t_shares_weights(pa->model(), pa_again->model()));
+  EXPECT_EQ(embodiment_chunk(*pa_again, 7), a1);
+  EXPECT_THROW(load("no_such_robot", shared_be), Error);
+  EXPECT_EQ(embodiment_chunk(*pb, 7), b1);
+}
+
+TEST(Gr00tEmbodiments, TwoTagsShareOneLoadAndMatchSeparateLoads) {
+  use_gr00t_hub();
+  expect_embodiments_share_one_load(fs::path(TETHER_FIXTURES_DIR) / "gr00t_n17" / "cam1_libero" / "checkpoint",
+                                    "libero_sim", "new_embodiment");
+}
