@@ -101,7 +101,13 @@ Verb add_go(CLI::App& app) {
             flags.precision = choice.precision;
             // KServe's model name: the registry id, not the export directory's name.
             if (flags.options.model_name.empty()) flags.options.model_name = e.id;
-            const std::string dir = cached_export(e, *src, flags.precision, flags.embodiment_tag);
+            // The export holds one embodiment's statistics (cached per tag): several are served from the checkpoint.
+            if (flags.embodiment_tags.size() > 1)
+              throw Error(ErrorCode::invalid_argument,
+                          "go serves one --embodiment-tag; serve several with `tether serve " + *src +
+                              " --embodiment-tag ...`");
+            const std::string tag = flags.embodiment_tags.empty() ? "" : flags.embodiment_tags.front();
+            const std::string dir = cached_export(e, *src, flags.precision, tag);
             std::fprintf(stderr, "tether go: %s -> %s (%s)\n", e.id.c_str(), dir.c_str(), flags.precision.c_str());
             return run_server(dir, flags);
           }};

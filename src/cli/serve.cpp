@@ -62,7 +62,11 @@ void add_serve_flags(CLI::App* sub, ServeFlags& f) {
   sub->add_option("--threads", o.threads, "I/O threads (inference has its own)")->capture_default_str()
       ->check(CLI::Range(1, 256));
   add_precision_flag(sub, f.precision);
-  add_embodiment_tag_flag(sub, f.embodiment_tag);
+  sub->add_option("--embodiment-tag", f.embodiment_tags,
+                  "Embodiment served, for checkpoints trained on several (GR00T: a tag of its embodiment_id.json). "
+                  "Repeat it (or separate tags by commas) to serve several from one copy of the weights: the first "
+                  "is the default, a request picks another by its tag. Default: the checkpoint's only one")
+      ->delimiter(',');
 
   // Safety wedges (off unless given; order and semantics in the README).
   auto& w = o.wedges;
@@ -203,8 +207,12 @@ int run_server(const std::string& checkpoint_dir, const ServeFlags& flags) {
   options.api_key = read_api_key(flags);
   options.wedges = wedge_options(flags, checkpoint_dir);
   if (options.model_name.empty()) options.model_name = serve::checkpoint_name(checkpoint_dir);
-  const models::LoadOptions load = load_options(flags.precision, flags.embodiment_tag);
-  serve::Server server(options, [checkpoint_dir, load] { return serve::load_policy_engine(checkpoint_dir, load); });
+  std::vector<serve::HostLoader> hosts;
+  for (const std::string& tag : flags.embodiment_tags.empty() ? std::vector<std::string>{""} : flags.embodiment_tags) {
+    const models::LoadOptions load = load_options(flags.precision, tag);
+    hosts.push_back({tag, [checkpoint_dir, load] { return serve::load_policy_engine(checkpoint_dir, load); }});
+  }
+  serve::Server server(options, std::move(hosts));
   const uint16_t port = server.start();
   // The other transports first: the HTTP line, which clients and scripts wait for, means everything is bound.
   for (const auto& [name, transport_port] : server.transport_ports())

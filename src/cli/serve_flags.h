@@ -4,6 +4,7 @@
 
 #include <CLI/CLI.hpp>
 #include <string>
+#include <vector>
 
 #include "serve/server.h"
 
@@ -16,7 +17,9 @@ struct ServeFlags {
   serve::ServerOptions options;
   std::string api_key_file;
   std::string precision = "fp32";
-  std::string embodiment_tag;  // GR00T: the embodiment served (--embodiment-tag)
+  // GR00T: the embodiments served (--embodiment-tag, repeatable or comma-separated); the first is the default, a
+  // request names another by its tag. Empty: the checkpoint's only one.
+  std::vector<std::string> embodiment_tags;
   // Wedge flags that name files or choices; run_server turns them into options.wedges before the socket is bound, so
   // a bad file is an error at start-up.
   std::string embodiment, custom_embodiment, safety_config, fallback_api_key_file, rtc_schedule = "linear";

@@ -48,6 +48,7 @@ ActResponse error_response(int status, const std::string& code, const std::strin
 
 // One request as it advances through the wedges.
 struct ActPipeline::Act {
+  ModelHost* host = nullptr;  // the embodiment's (ModelHosts::route)
   ActRequest parsed;
   double parse_ms = 0;
   std::shared_ptr<runtime::Episode> ep;
@@ -85,8 +86,8 @@ ActInput refused_input(std::size_t wire_bytes, std::exception_ptr error) {
           [](const ActRequest& r) { return act_request_json(r); }};
 }
 
-ActPipeline::ActPipeline(const ServerOptions& options, ModelHost& host, Metrics& metrics)
-    : opts_(options), host_(host), metrics_(metrics) {
+ActPipeline::ActPipeline(const ServerOptions& options, ModelHosts& hosts, Metrics& metrics)
+    : opts_(options), hosts_(hosts), metrics_(metrics) {
   const auto& w = opts_.wedges;
   if (!w.cloud_fallback.empty()) {
     fallback_ = std::make_unique<runtime::FallbackClient>(w.cloud_fallback, w.fallback_timeout_ms, w.fallback_api_key);
@@ -100,14 +101,15 @@ net::awaitable<ActResponse> ActPipeline::run(const ActInput& input, const Reques
   ActResponse res;
   try {
     check_api_key(ctx.api_key, opts_.api_key);
-    if (!host_.serving())
+    ModelHost& host = hosts_.route(input.embodiment ? input.embodiment() : std::string());
+    if (!host.serving())
       throw HttpError(503, "not_ready",
-                      std::string("the model is not ready (") + health_state_name(host_.health()) + ")");
+                      std::string("the model is not ready (") + health_state_name(host.health()) + ")");
     // HTTP enforces this while reading; a transport that hands over a whole message relies on this check.
     if (input.wire_bytes > opts_.max_body_bytes)
       throw HttpError(413, "body_too_large",
                       "the request exceeds " + std::to_string(opts_.max_body_bytes) + " bytes (--max-body-bytes)");
-    res = co_await traced(input, ctx);
+    res = co_await traced(input, ctx, host);
   } catch (const HttpError& e) {
     res = error_response(e.status(), e.code(), e.what(), e.retry_after_s());
   } catch (const std::exception& e) {
@@ -121,33 +123,35 @@ net::awaitable<ActResponse> ActPipeline::run(const ActInput& input, const Reques
 
 net::awaitable<ActResponse> ActPipeline::run(std::string_view body, const RequestContext& ctx) {
   const ActInput input{body.size(), [body](const models::ModelSpec& spec) { return parse_act_request(body, spec); },
-                       [body](const ActRequest&) { return std::string(body); }};
+                       [body](const ActRequest&) { return std::string(body); },
+                       [body] { return act_request_embodiment(body); }};
   co_return co_await run(input, ctx);
 }
 
 // Every request that passed auth and readiness leaves one trace line, whatever its outcome.
-net::awaitable<ActResponse> ActPipeline::traced(const ActInput& input, const RequestContext& ctx) {
+net::awaitable<ActResponse> ActPipeline::traced(const ActInput& input, const RequestContext& ctx, ModelHost& host) {
   ActTrace trace;
   trace.transport = ctx.transport;  // also on a request whose decoding fails
-  auto& wedges = host_.wedges();
+  auto& wedges = host.wedges();
   try {
-    ActResponse res = co_await answer(input, ctx, trace);
-    record_trace(wedges, metrics_, host_.engine(), trace, ctx.request_id, 200, "", "");
+    ActResponse res = co_await answer(input, ctx, host, trace);
+    record_trace(wedges, metrics_, host.engine(), trace, ctx.request_id, 200, "", "");
     co_return res;
   } catch (const HttpError& e) {
     trace.latency["total"] = ms_since(ctx.received);
-    record_trace(wedges, metrics_, host_.engine(), trace, ctx.request_id, e.status(), e.code(), e.what());
+    record_trace(wedges, metrics_, host.engine(), trace, ctx.request_id, e.status(), e.code(), e.what());
     throw;
   } catch (const std::exception& e) {
     trace.latency["total"] = ms_since(ctx.received);
-    record_trace(wedges, metrics_, host_.engine(), trace, ctx.request_id, 500, "internal_error",
+    record_trace(wedges, metrics_, host.engine(), trace, ctx.request_id, 500, "internal_error",
                  std::string("internal error: ") + e.what());
     throw;
   }
 }
 
-net::awaitable<ActResponse> ActPipeline::answer(const ActInput& input, const RequestContext& ctx, ActTrace& trace) {
-  Act a = parse(input, ctx, trace);
+net::awaitable<ActResponse> ActPipeline::answer(const ActInput& input, const RequestContext& ctx, ModelHost& host,
+                                                ActTrace& trace) {
+  Act a = parse(input, ctx, host, trace);
   co_await admit(a, ctx);  // 1. circuit breaker
   try_skip(a);                   // 2. similarity skip
   if (!a.actions) {              // 3. inference under the deadline
@@ -157,12 +161,14 @@ net::awaitable<ActResponse> ActPipeline::answer(const ActInput& input, const Req
   co_return respond(a, ctx, trace);  // 7. guard, then the answer
 }
 
-ActPipeline::Act ActPipeline::parse(const ActInput& input, const RequestContext& ctx, ActTrace& trace) {
+ActPipeline::Act ActPipeline::parse(const ActInput& input, const RequestContext& ctx, ModelHost& host,
+                                    ActTrace& trace) {
   const auto& w = opts_.wedges;
-  const Engine& engine = host_.engine();
-  auto& wedges = host_.wedges();
+  const Engine& engine = host.engine();
+  auto& wedges = host.wedges();
   const auto t_parse = Clock::now();
   Act a;
+  a.host = &host;
   trace.transport = ctx.transport;  // before decoding: a request refused there is traced with its transport too
   a.parsed = input.decode(engine.spec);
   policy::Observation& obs = a.parsed.observation;
@@ -188,7 +194,7 @@ ActPipeline::Act ActPipeline::parse(const ActInput& input, const RequestContext&
 }
 
 net::awaitable<void> ActPipeline::admit(Act& a, const RequestContext& ctx) {
-  auto& breaker = host_.wedges().breaker();
+  auto& breaker = a.host->wedges().breaker();
   const auto admission = breaker.admit();
   a.probe = admission == runtime::CircuitBreaker::Admission::probe;
   if (admission != runtime::CircuitBreaker::Admission::reject) co_return;
@@ -207,7 +213,7 @@ net::awaitable<void> ActPipeline::admit(Act& a, const RequestContext& ctx) {
 
 void ActPipeline::try_skip(Act& a) {
   if (a.actions) return;
-  auto& wedges = host_.wedges();
+  auto& wedges = a.host->wedges();
   a.actions = wedges.try_skip(*a.ep, a.parsed.observation, a.normalized_state, a.report);
   // A request answered from the cache tells nothing about the model: the probe goes to a later one.
   if (a.actions && a.probe) {
@@ -224,7 +230,7 @@ net::awaitable<ActPipeline::Inference> ActPipeline::infer(Act& a, const RequestC
     policy::Observation::Rtc rtc;
     rtc.prev_actions = std::move(a.parsed.rtc->prev_actions);
     // The leftover is what this server answered: back from the embodiment's range to the model's output first.
-    host_.wedges().unmap_output(rtc.prev_actions);
+    a.host->wedges().unmap_output(rtc.prev_actions);
     rtc.inference_delay = a.parsed.rtc->inference_delay;
     rtc.execution_horizon = w.sampler.rtc_execution_horizon;
     rtc.max_guidance_weight = w.sampler.rtc_max_guidance_weight;
@@ -270,7 +276,7 @@ net::awaitable<ActPipeline::Inference> ActPipeline::infer(Act& a, const RequestC
 
 net::awaitable<void> ActPipeline::recover(Act& a, Inference& inf, const RequestContext& ctx,
                                           ActTrace& trace) {
-  auto& wedges = host_.wedges();
+  auto& wedges = a.host->wedges();
   const bool missed = *inf.failure == BatchError::Kind::deadline_exceeded && inf.has_deadline;
   a.report.deadline_exceeded = missed;
   if (missed) count_wedge_event(metrics_, WedgeEvent::deadline_exceeded);
@@ -305,8 +311,8 @@ net::awaitable<void> ActPipeline::recover(Act& a, Inference& inf, const RequestC
 }
 
 ActResponse ActPipeline::respond(Act& a, const RequestContext& ctx, ActTrace& trace) {
-  auto& wedges = host_.wedges();
-  const Engine& engine = host_.engine();
+  auto& wedges = a.host->wedges();
+  const Engine& engine = a.host->engine();
   // 7. Guard: last, whatever produced the actions.
   wedges.guard(*a.ep, *a.actions, a.rows, a.state, ctx.request_id, trace.episode_id, a.report);
   count_wedge_report(metrics_, a.report);
@@ -357,7 +363,7 @@ std::shared_ptr<ActPipeline::InferenceWait> ActPipeline::start_inference(const n
                                                                          Clock::time_point observed,
                                                                          Clock::time_point batch_deadline) {
   auto wait = std::make_shared<InferenceWait>(ex);
-  runtime::Wedges* wedges = &host_.wedges();  // outlives the batcher; this completion may outlive the request
+  runtime::Wedges* wedges = &a.host->wedges();  // outlives the batcher; this completion may outlive the request
   // The similarity skip compares later observations with this one: keep it when that wedge is on.
   std::shared_ptr<policy::Observation> reference;
   if (wedges->skip_enabled()) reference = std::make_shared<policy::Observation>(a.parsed.observation);
@@ -388,7 +394,7 @@ std::shared_ptr<ActPipeline::InferenceWait> ActPipeline::start_inference(const n
     });
   };
   try {
-    host_.batcher().submit(std::move(a.parsed.observation), batch_deadline, done);
+    a.host->batcher().submit(std::move(a.parsed.observation), batch_deadline, done);
   } catch (...) {
     done(std::current_exception(), runtime::BatchResult{});
   }
@@ -405,7 +411,7 @@ net::awaitable<void> ActPipeline::call_fallback(Act& a, const std::string& reque
     int64_t action_dim;
   };
   auto call = std::make_shared<const Call>(
-      Call{fallback_.get(), a.fallback_body, request_id, host_.wedges().action_dim()});
+      Call{fallback_.get(), a.fallback_body, request_id, a.host->wedges().action_dim()});
   auto perform = net::co_spawn(
       *fallback_pool_,
       [call]() -> net::awaitable<runtime::FallbackReply> {

@@ -46,6 +46,10 @@ struct ActInput {
   // The request as a POST /act body, for the cloud fallback (which speaks /act); HTTP passes its body as is, other
   // transports re-encode what they decoded (act_request_json).
   std::function<std::string(const ActRequest&)> act_json;
+  // The embodiment tag the request names (serve/model_host.h's ModelHosts routes by it), read after auth and before
+  // decoding; null or empty: the server's default. A wire format that cannot be read yields empty here and its error
+  // from `decode`.
+  std::function<std::string()> embodiment = {};
 };
 
 // A request its transport refused while decoding its wire format, before it could become ActInputs of its own (a body
@@ -64,7 +68,7 @@ struct ActResponse {
 
 class ActPipeline {
  public:
-  ActPipeline(const ServerOptions& options, ModelHost& host, Metrics& metrics);
+  ActPipeline(const ServerOptions& options, ModelHosts& hosts, Metrics& metrics);
   ~ActPipeline();
   ActPipeline(const ActPipeline&) = delete;
   ActPipeline& operator=(const ActPipeline&) = delete;
@@ -81,9 +85,10 @@ class ActPipeline {
   struct InferenceWait;
   struct Inference;
 
-  boost::asio::awaitable<ActResponse> traced(const ActInput& input, const RequestContext& ctx);
-  boost::asio::awaitable<ActResponse> answer(const ActInput& input, const RequestContext& ctx, ActTrace& trace);
-  Act parse(const ActInput& input, const RequestContext& ctx, ActTrace& trace);
+  boost::asio::awaitable<ActResponse> traced(const ActInput& input, const RequestContext& ctx, ModelHost& host);
+  boost::asio::awaitable<ActResponse> answer(const ActInput& input, const RequestContext& ctx, ModelHost& host,
+                                             ActTrace& trace);
+  Act parse(const ActInput& input, const RequestContext& ctx, ModelHost& host, ActTrace& trace);
   boost::asio::awaitable<void> admit(Act& a, const RequestContext& ctx);
   void try_skip(Act& a);
   boost::asio::awaitable<Inference> infer(Act& a, const RequestContext& ctx);
@@ -97,7 +102,7 @@ class ActPipeline {
   boost::asio::awaitable<void> call_fallback(Act& a, const std::string& request_id);
 
   const ServerOptions& opts_;
-  ModelHost& host_;
+  ModelHosts& hosts_;
   Metrics& metrics_;
   std::unique_ptr<runtime::FallbackClient> fallback_;  // null without --cloud-fallback
   // Fallback calls block in libcurl: they run here, never on an I/O thread. Declared last: joined first.

@@ -248,13 +248,14 @@ ActRequest read_act_request(E root, const models::ModelSpec& spec) {
   if (!root.is_object()) fail("bad_json", "the body must be a JSON object, got " + type_name(root));
   const Fields fields = sorted_fields(root);
 
-  static const char* const kKnown[] = {"instruction", "state", "images", "image", "episode_id", "seed", "rtc"};
+  static const char* const kKnown[] = {"instruction", "state",       "images", "image", "episode_id",
+                                       "seed",        "rtc", "embodiment_tag"};
   for (const auto& [key, value] : fields) {
     bool known = false;
     for (const char* k : kKnown) known = known || key == k;
     if (!known)
       fail("unknown_field", "unknown field '" + std::string(key) +
-                                "' (accepted: instruction, state, images, image, episode_id, seed, rtc)");
+                                "' (accepted: instruction, state, images, image, episode_id, seed, rtc, embodiment_tag)");
   }
 
   ActRequest req;
@@ -306,6 +307,14 @@ ActRequest read_act_request(E root, const models::ModelSpec& spec) {
 
   check_cameras(obs, spec);
 
+  if (const auto tag = present(fields, "embodiment_tag")) {
+    if (!tag->is_string()) fail("invalid_field", "embodiment_tag: expected a string, got " + type_name(*tag));
+    // The pipeline routed the request by this tag (act_request_embodiment) to the host whose spec this is.
+    if (string_value(*tag) != spec.embodiment)
+      fail("invalid_field", "embodiment_tag: '" + std::string(string_value(*tag)) + "' is not the embodiment '" +
+                                spec.embodiment + "' this request was decoded for");
+    req.embodiment = spec.embodiment;
+  }
   if (const auto episode = present(fields, "episode_id")) {
     if (!episode->is_string()) fail("invalid_field", "episode_id: expected a string, got " + type_name(*episode));
     req.episode_id = std::string(string_value(*episode));
@@ -327,19 +336,41 @@ constexpr std::size_t kSimdjsonMaxDepth = kMaxJsonDepth + 2;
 
 }  // namespace
 
-ActRequest parse_act_request(std::string_view body, const models::ModelSpec& spec) {
-  thread_local std::unique_ptr<simdjson::dom::parser> parser;
-  if (!parser) {
-    parser = std::make_unique<simdjson::dom::parser>();
-    if (parser->allocate(simdjson::dom::MINIMAL_DOCUMENT_CAPACITY, kSimdjsonMaxDepth) != simdjson::SUCCESS)
-      throw std::bad_alloc();
-  }
-  struct Release {
-    std::unique_ptr<simdjson::dom::parser>& p;
-    ~Release() {
-      if (p && p->capacity() > kKeptParserCapacity) p.reset();
+namespace {
+
+// The I/O thread's parser (one per thread, reused), let go when a huge body grew it past kKeptParserCapacity.
+struct ThreadParser {
+  ThreadParser() : p(slot()) {
+    if (!p) {
+      p = std::make_unique<simdjson::dom::parser>();
+      if (p->allocate(simdjson::dom::MINIMAL_DOCUMENT_CAPACITY, kSimdjsonMaxDepth) != simdjson::SUCCESS)
+        throw std::bad_alloc();
     }
-  } release{parser};
+  }
+  ~ThreadParser() {
+    if (p && p->capacity() > kKeptParserCapacity) p.reset();
+  }
+  simdjson::dom::parser* operator->() { return p.get(); }
+  static std::unique_ptr<simdjson::dom::parser>& slot() {
+    thread_local std::unique_ptr<simdjson::dom::parser> parser;
+    return parser;
+  }
+  std::unique_ptr<simdjson::dom::parser>& p;
+};
+
+}  // namespace
+
+std::string act_request_embodiment(std::string_view body) {
+  ThreadParser parser;
+  E root;
+  if (parser->parse(body.data(), body.size()).get(root) != simdjson::SUCCESS || !root.is_object()) return "";
+  E tag;
+  if (root.at_key("embodiment_tag").get(tag) != simdjson::SUCCESS || !tag.is_string()) return "";
+  return std::string(string_value(tag));
+}
+
+ActRequest parse_act_request(std::string_view body, const models::ModelSpec& spec) {
+  ThreadParser parser;
   E root;
   if (parser->parse(body.data(), body.size()).get(root) == simdjson::SUCCESS) {
     try {
@@ -379,6 +410,7 @@ std::string act_request_json(const ActRequest& req) {
   J body = {{"instruction", obs.instruction}, {"state", obs.state}, {"images", std::move(images)}};
   if (req.seed) body["seed"] = *req.seed;
   if (req.episode_id) body["episode_id"] = *req.episode_id;
+  if (!req.embodiment.empty()) body["embodiment_tag"] = req.embodiment;
   if (req.rtc) {
     const int64_t dim = req.rtc->rows > 0 ? int64_t(req.rtc->prev_actions.size()) / req.rtc->rows : 0;
     J rows = J::array();

@@ -26,11 +26,16 @@ struct ActRequest {
   std::optional<uint64_t> seed;         // absent: the server derives one from the request id
   std::optional<std::string> episode_id;
   std::optional<RtcFields> rtc;
+  std::string embodiment;  // the GR00T embodiment tag the request named (empty: the server's default)
 };
 
 
 // Deepest JSON nesting accepted: the schema needs 4; the cap keeps hostile input from exhausting the stack.
 inline constexpr int kMaxJsonDepth = 16;
+
+// The "embodiment_tag" string of an /act body, for routing before decoding; empty when absent, not a string, or the
+// body not a JSON object (parse_act_request then reports what is wrong).
+std::string act_request_embodiment(std::string_view body);
 
 // Throws HttpError(400, code) with code one of bad_json, invalid_field, invalid_state, invalid_image,
 // unknown_camera, unknown_field, missing_field; the message names the field at fault.

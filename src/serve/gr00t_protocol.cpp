@@ -301,6 +301,11 @@ ActRequest decode_item(const Call& call, int64_t index, const models::ModelSpec&
     if (!ep->is_str()) fail("invalid_field", "data.options.episode_id: expected a string, got " + kind_of(*ep));
     req.episode_id = std::string(ep->bytes);
   }
+  const std::string tag = call_embodiment(call);
+  if (!tag.empty() && tag != spec.embodiment)  // the pipeline routed the call by it: a bug if they differ
+    fail("invalid_field", "data.options.embodiment_tag: '" + tag + "' is not the embodiment '" + spec.embodiment +
+                              "' this call was decoded for");
+  req.embodiment = tag;
   check_observation(o, spec);
   return req;
 }
@@ -393,6 +398,15 @@ void write_ndarray(msgpack::Writer& w, const std::string& npy) {
   w.boolean(true);
   w.str("as_npy");
   w.bin(npy);
+}
+
+std::string call_embodiment(const Call& call) {
+  const msgpack::Value* options = call.data.is_map() ? call.data.find("options") : nullptr;
+  if (!options || !options->is_map()) return "";
+  const msgpack::Value* tag = options->find("embodiment_tag");
+  if (!tag || tag->is_nil()) return "";
+  if (!tag->is_str()) fail("invalid_field", "data.options.embodiment_tag: expected a string, got " + kind_of(*tag));
+  return std::string(tag->bytes);
 }
 
 std::vector<std::string> reset_episodes(const Call& call) {

@@ -45,6 +45,10 @@ Layout observation_layout(const Call& call);
 // unknown_field.
 ActRequest decode_item(const Call& call, int64_t index, const models::ModelSpec& spec);
 
+// data.options.embodiment_tag: the embodiment a call is for (one per call; empty: the server's default). Throws
+// HttpError(400, invalid_field) when it is not a string.
+std::string call_embodiment(const Call& call);
+
 // The episodes a reset call ends: data.options.episode_id (a string, or a list of strings), else the default episode
 // "" that get_action calls without an episode_id share. Throws HttpError(400, invalid_field).
 std::vector<std::string> reset_episodes(const Call& call);

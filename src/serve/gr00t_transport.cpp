@@ -91,7 +91,7 @@ class Gr00tTransport final : public Transport {
   void handle(std::string payload, std::chrono::steady_clock::time_point received, ZmqReply reply) {
     auto g = std::make_shared<GetAction>(std::move(reply));
     g->payload = std::move(payload);
-    g->host = &ctx_.host;
+    g->host = &ctx_.hosts.primary();
     try {
       g->call = gr00t::parse_call(g->payload);
     } catch (...) {
@@ -115,12 +115,21 @@ class Gr00tTransport final : public Transport {
       return g->reply(gr00t::error_reply(400, "invalid_field", "observation: a batch of " + std::to_string(batch) +
                                                                    " items; at most " + std::to_string(kMaxItems)));
     g->inputs.resize(std::size_t(batch));
+    // The embodiment the call is for: the pipeline routes each item there (an unknown tag is its 400), and the reply
+    // is split into that embodiment's action groups. A tag that is not a string is decode_item's 400.
+    std::string tag;
+    try {
+      tag = gr00t::call_embodiment(g->call);
+      g->host = &ctx_.hosts.route(tag);
+    } catch (const std::exception&) {
+    }
     GetAction* raw = g.get();
     for (int64_t i = 0; i < batch; ++i) {
       auto& input = g->inputs[std::size_t(i)];
       input.wire_bytes = g->payload.size();
       input.decode = [raw, i](const models::ModelSpec& spec) { return gr00t::decode_item(raw->call, i, spec); };
       input.act_json = [](const ActRequest& r) { return act_request_json(r); };
+      input.embodiment = [tag] { return tag; };
     }
     run(std::move(g), received);
   }
@@ -145,14 +154,25 @@ class Gr00tTransport final : public Transport {
     check_api_key(call.api_token, ctx_.options.api_key);
     switch (call.endpoint) {
       case gr00t::Endpoint::ping: return gr00t::ping_reply();
-      case gr00t::Endpoint::reset:
-        // The episode's last good chunk, guard history and skip cache go: its next get_action starts afresh.
-        for (const std::string& id : gr00t::reset_episodes(call)) ctx_.host.wedges().episodes().end(id);
+      case gr00t::Endpoint::reset: {
+        // The episode's last good chunk, guard history and skip cache go: its next get_action starts afresh. Without
+        // a tag, in every embodiment served (an episode id names one robot's episode, wherever it ran).
+        const std::string tag = gr00t::call_embodiment(call);
+        const std::vector<std::string> ids = gr00t::reset_episodes(call);
+        std::vector<ModelHost*> hosts;
+        if (!tag.empty()) hosts.push_back(&ctx_.hosts.route(tag));  // an unknown tag is refused
+        else
+          for (std::size_t h = 0; h < ctx_.hosts.size(); ++h) hosts.push_back(&ctx_.hosts[h]);
+        for (ModelHost* host : hosts)
+          for (const std::string& id : ids) host->wedges().episodes().end(id);
         return gr00t::reset_reply();
-      case gr00t::Endpoint::get_modality_config:
-        if (!ctx_.host.serving())
-          throw HttpError(503, "not_ready", std::string("the model is not ready (") + health_state_name(ctx_.host.health()) + ")");
-        return gr00t::modality_config_reply(ctx_.host.engine().spec, ctx_.host.wedges().action_dim());
+      }
+      case gr00t::Endpoint::get_modality_config: {
+        ModelHost& host = ctx_.hosts.route(gr00t::call_embodiment(call));
+        if (!host.serving())
+          throw HttpError(503, "not_ready", std::string("the model is not ready (") + health_state_name(host.health()) + ")");
+        return gr00t::modality_config_reply(host.engine().spec, host.wedges().action_dim());
+      }
       case gr00t::Endpoint::kill:
         if (!ctx_.options.gr00t_allow_kill)
           throw HttpError(403, "kill_disabled", "the kill endpoint is disabled on this server (start it with --gr00t-allow-kill)");

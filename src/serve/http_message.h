@@ -43,4 +43,8 @@ bool accepts_msgpack(const HttpRequest& req);
 HttpResponse act_response(const HttpRequest& req, const ActResponse& act, const std::string& request_id,
                           bool msgpack = false);
 
+// The value of `key` in a request target's query string ("/config?embodiment_tag=x" -> "x"), as written (no
+// percent-decoding: the values it is used for are plain identifiers); empty when absent.
+std::string query_parameter(std::string_view target, std::string_view key);
+
 }  // namespace tether::serve

@@ -121,12 +121,14 @@ struct KServeEndpoints::Prepared {
   std::vector<RequestContext> contexts;
 };
 
-KServeEndpoints::KServeEndpoints(const ServerOptions& options, ModelHost& host, Metrics& metrics, ActPipeline& pipeline)
-    : opts_(options), host_(host), metrics_(metrics), pipeline_(pipeline) {}
+KServeEndpoints::KServeEndpoints(const ServerOptions& options, ModelHosts& hosts, Metrics& metrics,
+                                 ActPipeline& pipeline)
+    : opts_(options), hosts_(hosts), metrics_(metrics), pipeline_(pipeline) {}
 
 std::string KServeEndpoints::model_name() const {
   if (!opts_.model_name.empty()) return opts_.model_name;
-  return host_.loaded() ? host_.engine().model_name : std::string("model");
+  const ModelHost& host = hosts_.primary();
+  return host.loaded() ? host.engine().model_name : std::string("model");
 }
 
 namespace {
@@ -163,19 +165,22 @@ HttpResponse KServeEndpoints::get(const HttpRequest& req, const std::string& req
       return health(true);
     case Kind::ready:
       require_method(req, http::verb::get);
-      return health(host_.health() == HealthState::ready);
+      return health(hosts_.health() == HealthState::ready);
     case Kind::model_ready:
       require_method(req, http::verb::get);
       check_model(p, model_name());
-      return health(host_.health() == HealthState::ready);
+      return health(hosts_.health() == HealthState::ready);
     case Kind::model_metadata: {
       require_method(req, http::verb::get);
       check_model(p, model_name());
       check_api_key(presented_api_key(req), opts_.api_key);
-      if (!host_.loaded()) throw HttpError(503, "not_ready", "the model is still loading");
-      return json_response(req, 200,
-                           kserve::model_metadata(model_name(), host_.engine().spec, host_.wedges().action_dim()),
-                           request_id);
+      const ModelHost& host = hosts_.primary();
+      if (!host.loaded()) throw HttpError(503, "not_ready", "the model is still loading");
+      Json metadata = kserve::model_metadata(model_name(), host.engine().spec, host.wedges().action_dim());
+      // The default embodiment's tensors; an infer request picks another with parameters.embodiment_tag.
+      if (hosts_.size() > 1 || !host.embodiment().empty())
+        metadata["parameters"] = {{"embodiment_tag", host.embodiment()}, {"embodiments", hosts_.embodiments()}};
+      return json_response(req, 200, metadata, request_id);
     }
     case Kind::infer:
     case Kind::unknown: break;
@@ -193,8 +198,9 @@ void KServeEndpoints::prepare(const HttpRequest& req, const std::string& request
   check_model(p, model_name());
   // The pipeline's own order: the key before anything about the body, then readiness, then the size.
   check_api_key(presented_api_key(req), opts_.api_key);
-  if (!host_.serving())
-    throw HttpError(503, "not_ready", std::string("the model is not ready (") + health_state_name(host_.health()) + ")");
+  if (!hosts_.primary().serving())
+    throw HttpError(503, "not_ready",
+                    std::string("the model is not ready (") + health_state_name(hosts_.primary().health()) + ")");
   if (req.body().size() > opts_.max_body_bytes)
     throw HttpError(413, "body_too_large",
                     "the request exceeds " + std::to_string(opts_.max_body_bytes) + " bytes (--max-body-bytes)");
@@ -209,8 +215,15 @@ void KServeEndpoints::prepare(const HttpRequest& req, const std::string& request
     if (!encoding.empty() && encoding != "identity")
       throw HttpError(400, "invalid_field",
                       "Content-Encoding '" + encoding + "' is not supported: send the body uncompressed");
-    prep.request = kserve::decode_infer_request(req.body(), header(req, "Inference-Header-Content-Length"),
-                                                host_.engine().spec);
+    prep.request = kserve::decode_infer_request(
+        req.body(), header(req, "Inference-Header-Content-Length"),
+        [this](const std::string& embodiment) -> const models::ModelSpec& {
+          const ModelHost& host = hosts_.route(embodiment);
+          if (!host.serving())
+            throw HttpError(503, "not_ready",
+                            "embodiment '" + embodiment + "' is not ready (" + health_state_name(host.health()) + ")");
+          return host.engine().spec;
+        });
   } catch (...) {
     // Refused while decoding: one pipeline request that fails at its decoding step, so the refusal is counted and
     // traced as any transport's is.
@@ -226,7 +239,8 @@ void KServeEndpoints::prepare(const HttpRequest& req, const std::string& request
     if (n > 1) prep.contexts[i].request_id = request_id + "." + std::to_string(i);
     ActRequest* item = &prep.request.items[i];
     prep.inputs.push_back(ActInput{req.body().size(), [item](const models::ModelSpec&) { return std::move(*item); },
-                                   [](const ActRequest& r) { return act_request_json(r); }});
+                                   [](const ActRequest& r) { return act_request_json(r); },
+                                   [tag = prep.request.embodiment] { return tag; }});
   }
 }
 

@@ -28,7 +28,7 @@ HttpResponse kserve_error_response(const HttpRequest& req, int status, const std
 
 class KServeEndpoints {
  public:
-  KServeEndpoints(const ServerOptions& options, ModelHost& host, Metrics& metrics, ActPipeline& pipeline);
+  KServeEndpoints(const ServerOptions& options, ModelHosts& hosts, Metrics& metrics, ActPipeline& pipeline);
 
   // Answers one /v2 request and counts it (transport "kserve"); never throws. Runs on the connection's strand (or
   // any single-threaded executor): the batch items' pipeline requests are spawned on the same executor.
@@ -52,7 +52,7 @@ class KServeEndpoints {
                                                  Prepared& p);
 
   const ServerOptions& opts_;
-  ModelHost& host_;
+  ModelHosts& hosts_;
   Metrics& metrics_;
   ActPipeline& pipeline_;
 };

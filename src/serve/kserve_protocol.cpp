@@ -326,6 +326,10 @@ std::string image_tensor_name(const std::string& camera, const models::ModelSpec
 
 InferRequest decode_infer_request(std::string_view body, std::string_view header_length,
                                   const models::ModelSpec& spec) {
+  return decode_infer_request(body, header_length, [&spec](const std::string&) -> const models::ModelSpec& { return spec; });
+}
+
+InferRequest decode_infer_request(std::string_view body, std::string_view header_length, const SpecFor& spec_for) {
   std::size_t json_size = body.size();
   const bool has_binary = !header_length.empty();
   if (has_binary) {
@@ -353,6 +357,15 @@ InferRequest decode_infer_request(std::string_view body, std::string_view header
   }
   const J* params = find_parameters(request, "the request");
   const bool binary_output = bool_parameter(params, "binary_data_output", "the request").value_or(false);
+  if (params && params->contains("embodiment_tag")) {
+    const J& tag = params->at("embodiment_tag");
+    if (!tag.is_string()) fail("invalid_field", "the request: parameters.embodiment_tag must be a string");
+    out.embodiment = tag.get<std::string>();
+  }
+  const models::ModelSpec& spec = spec_for(out.embodiment);
+  if (!out.embodiment.empty() && out.embodiment != spec.embodiment)
+    fail("invalid_field", "the request: parameters.embodiment_tag '" + out.embodiment + "' is not the embodiment '" +
+                              spec.embodiment + "' it was decoded for");
 
   const auto inputs_it = request.find("inputs");
   if (inputs_it == request.end() || !inputs_it->is_array() || inputs_it->empty())
@@ -444,6 +457,7 @@ InferRequest decode_infer_request(std::string_view body, std::string_view header
   for (int64_t b = 0; b < batch; ++b) {
     const auto k = std::size_t(b);
     ActRequest req;
+    req.embodiment = out.embodiment;
     policy::Observation& obs = req.observation;
     obs.instruction = instruction->strings[k];
     obs.state.assign(state->floats.begin() + std::ptrdiff_t(k * d), state->floats.begin() + std::ptrdiff_t((k + 1) * d));

@@ -5,6 +5,7 @@
 #pragma once
 
 #include <cstdint>
+#include <functional>
 #include <optional>
 #include <string>
 #include <string_view>
@@ -42,6 +43,7 @@ struct InferRequest {
   std::optional<std::string> id;        // echoed in the answer
   std::vector<ActRequest> items;        // one per batch row, each already checked with check_observation
   std::vector<RequestedOutput> outputs;  // never empty: none requested means every output
+  std::string embodiment;  // parameters.embodiment_tag: the GR00T embodiment asked for (empty: the server's default)
 };
 
 // Decodes an inference request. `header_length` is the Inference-Header-Content-Length header's value ("" when the
@@ -49,6 +51,10 @@ struct InferRequest {
 // fault; code one of bad_json, invalid_field, invalid_state, unknown_field, unknown_camera, missing_field.
 InferRequest decode_infer_request(std::string_view body, std::string_view header_length,
                                   const models::ModelSpec& spec);
+// The same for a server of several embodiments: the items are decoded against spec_for(parameters.embodiment_tag)
+// (empty: the default), which throws for a tag not served.
+using SpecFor = std::function<const models::ModelSpec&(const std::string& embodiment)>;
+InferRequest decode_infer_request(std::string_view body, std::string_view header_length, const SpecFor& spec_for);
 
 // One item's answer as the pipeline gave it.
 struct ItemAnswer {

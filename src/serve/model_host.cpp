@@ -3,6 +3,10 @@
 
 #include <chrono>
 #include <cstdio>
+#include <filesystem>
+
+#include "core/error.h"
+#include "serve/http_error.h"
 
 #include "runtime/fault_injection.h"
 #include "serve/wedge_metrics.h"
@@ -31,8 +35,17 @@ const char* health_state_name(HealthState s) {
 }
 
 ModelHost::ModelHost(EngineLoader loader, runtime::BatcherOptions batch, runtime::WedgeOptions wedge_options,
-                     Metrics& metrics)
-    : loader_(std::move(loader)), batch_options_(batch), metrics_(metrics), wedges_(std::move(wedge_options)) {}
+                     Metrics& metrics, std::string embodiment)
+    : loader_(std::move(loader)),
+      embodiment_(std::move(embodiment)),
+      batch_options_(batch),
+      metrics_(metrics),
+      wedges_(std::move(wedge_options)) {}
+
+std::string ModelHost::embodiment() const {
+  if (!embodiment_.empty() || !loaded()) return embodiment_;
+  return engine_->spec.embodiment;
+}
 
 ModelHost::~ModelHost() { stop(); }
 
@@ -102,6 +115,90 @@ bool ModelHost::loaded() const {
 bool ModelHost::serving() const {
   const HealthState s = model_state();
   return s == HealthState::ready || s == HealthState::degraded;
+}
+
+namespace {
+
+runtime::WedgeOptions host_wedges(const runtime::WedgeOptions& wedges, const std::string& embodiment, bool several) {
+  runtime::WedgeOptions w = wedges;
+  // One hash chain per recorder: hosts sharing a directory would interleave two chains in one file.
+  if (several && w.record) w.record->dir = (std::filesystem::path(w.record->dir) / embodiment).string();
+  return w;
+}
+
+// How far from serving a state is: the worst one speaks for a set of hosts.
+int unreadiness(HealthState s) {
+  switch (s) {
+    case HealthState::failed: return 5;
+    case HealthState::loading: return 4;
+    case HealthState::warming: return 3;
+    case HealthState::circuit_open: return 2;
+    case HealthState::degraded: return 1;
+    case HealthState::ready: return 0;
+  }
+  return 5;
+}
+
+}  // namespace
+
+ModelHosts::ModelHosts(std::vector<HostLoader> loaders, runtime::BatcherOptions batch,
+                       const runtime::WedgeOptions& wedges, Metrics& metrics) {
+  if (loaders.empty()) throw Error(ErrorCode::invalid_argument, "no model to serve");
+  const bool several = loaders.size() > 1;
+  for (auto& l : loaders) {
+    if (several && l.embodiment.empty())
+      throw Error(ErrorCode::invalid_argument, "serving several embodiments: each needs its tag");
+    for (const auto& h : hosts_)
+      if (h->embodiment() == l.embodiment)
+        throw Error(ErrorCode::invalid_argument, "embodiment '" + l.embodiment + "' is named twice");
+    hosts_.push_back(std::make_unique<ModelHost>(std::move(l.load), batch, host_wedges(wedges, l.embodiment, several),
+                                                 metrics, l.embodiment));
+  }
+}
+
+ModelHost& ModelHosts::route(const std::string& embodiment) {
+  if (embodiment.empty()) return primary();
+  for (auto& h : hosts_)
+    if (h->embodiment() == embodiment) return *h;
+  std::string served;
+  for (const auto& tag : embodiments())
+    if (!tag.empty()) served += (served.empty() ? "" : ", ") + tag;
+  throw HttpError(400, "unknown_embodiment",
+                  "unknown embodiment tag '" + embodiment + "' (" +
+                      (served.empty() ? std::string("this server's model has no embodiment tags")
+                                      : "this server serves: " + served) +
+                      ")");
+}
+
+std::vector<std::string> ModelHosts::embodiments() const {
+  std::vector<std::string> out;
+  for (const auto& h : hosts_) out.push_back(h->embodiment());
+  return out;
+}
+
+bool ModelHosts::load() {
+  for (auto& h : hosts_)
+    if (!h->load()) return false;
+  return true;
+}
+
+void ModelHosts::stop() {
+  for (auto& h : hosts_) h->stop();
+}
+
+HealthState ModelHosts::health() const {
+  HealthState worst = HealthState::ready;
+  for (const auto& h : hosts_) {
+    const HealthState s = h->health();
+    if (unreadiness(s) > unreadiness(worst)) worst = s;
+  }
+  return worst;
+}
+
+std::exception_ptr ModelHosts::load_error() const {
+  for (const auto& h : hosts_)
+    if (h->load_error()) return h->load_error();
+  return nullptr;
 }
 
 Json inference_mode_json(const Engine& engine) {

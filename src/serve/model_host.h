@@ -25,7 +25,10 @@ class ModelHost {
  public:
   // Builds the wedges from `wedge_options` at once (a bad audit log or trace directory throws here); the model
   // itself is loaded by load().
-  ModelHost(EngineLoader loader, runtime::BatcherOptions batch, runtime::WedgeOptions wedge_options, Metrics& metrics);
+  // `embodiment`: the GR00T embodiment tag this host was asked to serve (empty: the checkpoint's only one, or a model
+  // without tags).
+  ModelHost(EngineLoader loader, runtime::BatcherOptions batch, runtime::WedgeOptions wedge_options, Metrics& metrics,
+            std::string embodiment = "");
   ~ModelHost();
   ModelHost(const ModelHost&) = delete;
   ModelHost& operator=(const ModelHost&) = delete;
@@ -53,9 +56,13 @@ class ModelHost {
   runtime::Wedges& wedges() { return wedges_; }
   const runtime::Wedges& wedges() const { return wedges_; }
   std::exception_ptr load_error() const { return load_error_; }
+  // The tag requests name this host by: the one asked for, else (once loaded) the model's own; empty for a model
+  // without embodiment tags.
+  std::string embodiment() const;
 
  private:
   EngineLoader loader_;
+  std::string embodiment_;
   runtime::BatcherOptions batch_options_;
   Metrics& metrics_;
   runtime::Wedges wedges_;
@@ -64,6 +71,46 @@ class ModelHost {
   std::unique_ptr<Engine> engine_;
   std::unique_ptr<runtime::Batcher> batcher_;
   std::exception_ptr load_error_;
+};
+
+// What a server serves: one ModelHost, or one per embodiment of a GR00T checkpoint (`serve --embodiment-tag a
+// --embodiment-tag b`), all loaded from one copy of the shared weights (models::load_gr00t_embodiment). The first is
+// the default; a request picks another by its tag (ActInput::embodiment). Each host has its own batcher, wedges, last
+// good chunks and guard; with several, each records its traces in its own sub-directory of --record (one hash chain
+// per embodiment).
+struct HostLoader {
+  std::string embodiment;  // empty: the default (a single host)
+  EngineLoader load;
+};
+
+class ModelHosts {
+ public:
+  ModelHosts(std::vector<HostLoader> loaders, runtime::BatcherOptions batch, const runtime::WedgeOptions& wedges,
+             Metrics& metrics);
+  ModelHosts(const ModelHosts&) = delete;
+  ModelHosts& operator=(const ModelHosts&) = delete;
+
+  std::size_t size() const { return hosts_.size(); }
+  ModelHost& operator[](std::size_t i) { return *hosts_.at(i); }
+  const ModelHost& operator[](std::size_t i) const { return *hosts_.at(i); }
+  ModelHost& primary() { return *hosts_.front(); }
+  const ModelHost& primary() const { return *hosts_.front(); }
+  // The host serving `embodiment` (empty: the default). Throws HttpError(400, "unknown_embodiment") listing the tags
+  // served.
+  ModelHost& route(const std::string& embodiment);
+  // The tags requests may name, in host order.
+  std::vector<std::string> embodiments() const;
+
+  // Loads every host in order (ModelHost::load); false as soon as one fails (the others are left unloaded).
+  bool load();
+  void stop();
+  // /health's view of them all: the least ready one's state (failed, loading, warming, circuit_open, degraded, ready).
+  HealthState health() const;
+  // The first host's load error, if one failed.
+  std::exception_ptr load_error() const;
+
+ private:
+  std::vector<std::unique_ptr<ModelHost>> hosts_;
 };
 
 // How the engine runs, as /config and every /act response report it.

@@ -162,8 +162,9 @@ net::awaitable<void> fail_connection(Ws& ws, OpenpiConnection& conn, const std::
   co_await ws.async_close(close, net::redirect_error(net::use_awaitable, ec));
 }
 
-Json metadata(const Shared& s) {
-  const Engine& engine = s.ctx.host.engine();
+// What the connection's embodiment (its upgrade's ?embodiment_tag=, else the server's default) is fed and answers.
+Json metadata(const Shared& s, const ModelHost& host) {
+  const Engine& engine = host.engine();
   const auto& spec = engine.spec;
   Json keys = Json::object();
   for (const auto& layout : s.layouts.candidates) {
@@ -183,8 +184,10 @@ Json metadata(const Shared& s) {
           {"family", spec.family},
           {"model_hash", engine.model_hash},
           {"action_horizon", spec.chunk_size},
-          {"action_dim", s.ctx.host.wedges().action_dim()},
+          {"action_dim", host.wedges().action_dim()},
           {"state_dim", spec.state_dim},
+          {"embodiment_tag", spec.embodiment.empty() ? Json(nullptr) : Json(spec.embodiment)},
+          {"embodiments", s.ctx.hosts.embodiments()},
           {"layout", s.layouts.name},
           {"cameras", keys}};
 }
@@ -202,7 +205,7 @@ std::string failure_text(const ActResponse& r, const std::string& request_id) {
 
 // One WebSocket connection from the upgrade to its close.
 net::awaitable<void> websocket_session(std::shared_ptr<Shared> s, std::shared_ptr<OpenpiConnection> conn,
-                                       HttpRequest req, std::string api_key) {
+                                       HttpRequest req, std::string api_key, std::string embodiment) {
   const ServerOptions& opts = s->opts();
   Ws& ws = conn->ws;
   websocket::stream_base::timeout timeouts;
@@ -229,7 +232,7 @@ net::awaitable<void> websocket_session(std::shared_ptr<Shared> s, std::shared_pt
   co_await ws.async_accept(req, net::redirect_error(net::use_awaitable, ec));
   if (ec) co_return;
   Registration registered(*s, conn);
-  const std::string meta = openpi::encode_json(metadata(*s));
+  const std::string meta = openpi::encode_json(metadata(*s, s->ctx.hosts.route(embodiment)));
   if (!co_await write_frame(ws, meta, false, opts.write_timeout_ms)) co_return;
 
   const std::size_t limit = s->max_frame_bytes();
@@ -285,6 +288,7 @@ net::awaitable<void> websocket_session(std::shared_ptr<Shared> s, std::shared_pt
       return openpi::decode_request(bytes, s->layouts, m);
     };
     input.act_json = [](const ActRequest& r) { return act_request_json(r); };
+    input.embodiment = [&embodiment] { return embodiment; };
     const auto t0 = Clock::now();
     // The idle timer counts only while waiting for a frame: a long inference (the client waits) must not drop it.
     ws.set_option(websocket::stream_base::timeout{websocket::stream_base::none(), websocket::stream_base::none(), false});
@@ -309,14 +313,15 @@ net::awaitable<void> websocket_session(std::shared_ptr<Shared> s, std::shared_pt
 // What the upgrade request gets when it is not upgraded; nullopt: upgrade it.
 std::optional<HttpResponse> refusal(Shared& s, const HttpRequest& req, const std::string& key) {
   const ServerOptions& opts = s.opts();
-  ModelHost& host = s.ctx.host;
   Metrics& metrics = s.ctx.metrics;
   const std::string_view target = req.target();
   const std::string_view path = target.substr(0, target.find('?'));
   if (path == "/healthz") {  // as openpi's server answers it, before any upgrade
-    if (host.serving()) return plain_response(req, http::status::ok, "OK\n", "text/plain");
-    return plain_response(req, http::status::service_unavailable, std::string(health_state_name(host.health())) + "\n",
-                          "text/plain", 1);
+    for (std::size_t i = 0; i < s.ctx.hosts.size(); ++i)
+      if (const ModelHost& host = s.ctx.hosts[i]; !host.serving())
+        return plain_response(req, http::status::service_unavailable,
+                              std::string(health_state_name(host.health())) + "\n", "text/plain", 1);
+    return plain_response(req, http::status::ok, "OK\n", "text/plain");
   }
   if (!websocket::is_upgrade(req)) {
     metrics.count_request("upgrade", 426, "openpi");
@@ -336,6 +341,15 @@ std::optional<HttpResponse> refusal(Shared& s, const HttpRequest& req, const std
     return plain_response(req, http::status::service_unavailable,
                           error_json("shutting_down", "the server is shutting down"), "application/json", 1);
   }
+  // The connection's embodiment: ?embodiment_tag= on the upgrade, else the server's default.
+  ModelHost* routed = nullptr;
+  try {
+    routed = &s.ctx.hosts.route(query_parameter(target, "embodiment_tag"));
+  } catch (const HttpError& e) {
+    metrics.count_request("upgrade", e.status(), "openpi");
+    return plain_response(req, http::status(e.status()), error_json(e.code(), e.what()), "application/json");
+  }
+  ModelHost& host = *routed;
   if (!host.serving()) {
     metrics.count_request("upgrade", 503, "openpi");
     return plain_response(req, http::status::service_unavailable,
@@ -388,7 +402,8 @@ net::awaitable<void> session(std::shared_ptr<Shared> s, tcp::socket socket) {
   }
   stream.expires_never();  // the WebSocket's own timeouts apply from here
   auto conn = std::make_shared<OpenpiConnection>(std::move(stream));
-  co_await websocket_session(s, conn, std::move(req), key);
+  std::string embodiment = query_parameter(req.target(), "embodiment_tag");
+  co_await websocket_session(s, conn, std::move(req), key, std::move(embodiment));
 }
 
 net::awaitable<void> serve_connection(std::shared_ptr<Shared> s, tcp::socket socket) {

@@ -10,33 +10,51 @@ namespace tether::serve {
 
 namespace http = boost::beast::http;
 
-Router::Router(const ServerOptions& options, ModelHost& host, Metrics& metrics, ActPipeline& pipeline)
-    : opts_(options), host_(host), metrics_(metrics), pipeline_(pipeline), kserve_(options, host, metrics, pipeline) {}
+Router::Router(const ServerOptions& options, ModelHosts& hosts, Metrics& metrics, ActPipeline& pipeline)
+    : opts_(options), hosts_(hosts), metrics_(metrics), pipeline_(pipeline), kserve_(options, hosts, metrics, pipeline) {}
+
+namespace {
+
+Json circuit_json(const runtime::CircuitBreaker& b) {
+  return {{"state", runtime::circuit_state_name(b.state())},
+          {"consecutive_failures", b.consecutive_failures()},
+          {"times_opened", b.times_opened()},
+          {"retry_after_s", b.retry_after_s()}};
+}
+
+}  // namespace
 
 Json Router::health_json(HealthState s) const {
   const bool ok = s == HealthState::ready;
+  const ModelHost& primary = hosts_.primary();
   Json h = {{"status", ok ? "ok" : "unavailable"},
             {"state", health_state_name(s)},
-            {"model_hash", host_.loaded() ? Json(host_.engine().model_hash) : Json(nullptr)}};
-  const auto& b = host_.wedges().breaker();
-  if (b.enabled()) {
-    h["circuit"] = {{"state", runtime::circuit_state_name(b.state())},
-                    {"consecutive_failures", b.consecutive_failures()},
-                    {"times_opened", b.times_opened()},
-                    {"retry_after_s", b.retry_after_s()}};
+            {"model_hash", primary.loaded() ? Json(primary.engine().model_hash) : Json(nullptr)}};
+  if (primary.wedges().breaker().enabled()) h["circuit"] = circuit_json(primary.wedges().breaker());
+  if (hosts_.size() > 1) {  // each embodiment's own state (its batcher and circuit are its own)
+    Json each = Json::object();
+    for (std::size_t i = 0; i < hosts_.size(); ++i) {
+      const ModelHost& host = hosts_[i];
+      Json e = {{"state", health_state_name(host.health())}};
+      if (host.wedges().breaker().enabled()) e["circuit"] = circuit_json(host.wedges().breaker());
+      each[host.embodiment()] = std::move(e);
+    }
+    h["embodiments"] = std::move(each);
   }
   return h;
 }
 
-Json Router::config_json() const {
-  const Engine& engine = host_.engine();
+Json Router::config_json(const ModelHost& host) const {
+  const Engine& engine = host.engine();
   const auto& s = engine.spec;
   return {{"family", s.family},
+          {"embodiment", s.embodiment.empty() ? Json(nullptr) : Json(s.embodiment)},
+          {"embodiments", hosts_.embodiments()},
           {"cameras", s.cameras},
           {"missing_camera_rule", s.missing_camera_rule},
           {"stages", s.stages},
           {"state_dim", s.state_dim},
-          {"action_dim", host_.wedges().action_dim()},  // what /act answers (an embodiment may cut a padded output)
+          {"action_dim", host.wedges().action_dim()},  // what /act answers (an embodiment may cut a padded output)
           {"chunk_size", s.chunk_size},
           {"num_steps", s.num_steps},
           {"normalization", engine.normalization},
@@ -44,7 +62,7 @@ Json Router::config_json() const {
           {"model_hash", engine.model_hash},
           {"inference_mode", inference_mode_json(engine)},
           {"load_warnings", engine.load_warnings},
-          {"wedges", host_.wedges().config_json()},
+          {"wedges", host.wedges().config_json()},
           {"limits",
            {{"max_batch", opts_.batch.max_batch},
             {"batch_timeout_ms", opts_.batch.batch_timeout_ms},
@@ -65,15 +83,18 @@ boost::asio::awaitable<HttpResponse> Router::route(const HttpRequest& req, const
   };
   if (path == "/health") {
     require_method(is_get, "GET");
-    const HealthState s = host_.health();
+    const HealthState s = hosts_.health();
     HttpResponse res = json_response(req, s == HealthState::ready ? 200 : 503, health_json(s), request_id);
-    if (s == HealthState::circuit_open)
-      res.set(http::field::retry_after, std::to_string(std::max(1, host_.wedges().breaker().retry_after_s())));
+    if (s == HealthState::circuit_open) {
+      int retry = 1;
+      for (std::size_t i = 0; i < hosts_.size(); ++i) retry = std::max(retry, hosts_[i].wedges().breaker().retry_after_s());
+      res.set(http::field::retry_after, std::to_string(retry));
+    }
     co_return res;
   }
   if (path == "/ready") {
     require_method(is_get, "GET");
-    const bool ready = host_.health() == HealthState::ready;
+    const bool ready = hosts_.health() == HealthState::ready;
     co_return json_response(req, ready ? 200 : 503, {{"ready", ready}}, request_id);
   }
   if (path == "/live") {
@@ -83,14 +104,20 @@ boost::asio::awaitable<HttpResponse> Router::route(const HttpRequest& req, const
   if (path == "/config") {
     require_method(is_get, "GET");
     check_api_key(presented_api_key(req), opts_.api_key);
-    if (!host_.loaded()) throw HttpError(503, "not_ready", "the model is still loading");
-    co_return json_response(req, 200, config_json(), request_id);
+    // One embodiment's configuration: ?embodiment_tag=<tag>, else the default's.
+    const ModelHost& host = hosts_.route(query_parameter(req.target(), "embodiment_tag"));
+    if (!host.loaded()) throw HttpError(503, "not_ready", "the model is still loading");
+    co_return json_response(req, 200, config_json(host), request_id);
   }
   if (path == "/metrics") {
     require_method(is_get, "GET");
-    metrics_.set_queue_depth(host_.loaded() ? host_.batcher().queue_depth() : 0);
-    refresh_wedge_gauges(metrics_, host_.wedges());
-    metrics_.set_model_ready(host_.health() == HealthState::ready);
+    // Gauges of the default embodiment's wedges; the queue depth and readiness of them all.
+    int depth = 0;
+    for (std::size_t i = 0; i < hosts_.size(); ++i)
+      if (hosts_[i].loaded()) depth += hosts_[i].batcher().queue_depth();
+    metrics_.set_queue_depth(depth);
+    refresh_wedge_gauges(metrics_, hosts_.primary().wedges());
+    metrics_.set_model_ready(hosts_.health() == HealthState::ready);
     co_return make_response(req, http::status::ok, metrics_.render(), request_id,
                             "text/plain; version=0.0.4; charset=utf-8");
   }
@@ -109,7 +136,8 @@ boost::asio::awaitable<HttpResponse> Router::handle(const HttpRequest& req,
       // The binary body: raw image bytes without base64 (docs/serve-api.md#msgpack-bodies).
       const ActInput input{body.size(),
                            [body](const models::ModelSpec& spec) { return zmqp::decode_http_body(body, spec); },
-                           [](const ActRequest& r) { return act_request_json(r); }};
+                           [](const ActRequest& r) { return act_request_json(r); },
+                           [body] { return zmqp::http_body_embodiment(body); }};
       const ActResponse act = co_await pipeline_.run(input, ctx);
       co_return act_response(req, act, request_id, accepts_msgpack(req));
     }

@@ -16,20 +16,21 @@ namespace tether::serve {
 
 class Router {
  public:
-  Router(const ServerOptions& options, ModelHost& host, Metrics& metrics, ActPipeline& pipeline);
+  Router(const ServerOptions& options, ModelHosts& hosts, Metrics& metrics, ActPipeline& pipeline);
 
   // Runs one request to a response and counts it in tether_requests_total; never throws.
   boost::asio::awaitable<HttpResponse> handle(const HttpRequest& req, std::chrono::steady_clock::time_point received);
 
   // The bodies of /health and /config.
   Json health_json(HealthState s) const;
-  Json config_json() const;
+  // `host`'s configuration, with the embodiments served.
+  Json config_json(const ModelHost& host) const;
 
  private:
   boost::asio::awaitable<HttpResponse> route(const HttpRequest& req, const std::string& request_id);
 
   const ServerOptions& opts_;
-  ModelHost& host_;
+  ModelHosts& hosts_;
   Metrics& metrics_;
   ActPipeline& pipeline_;
   KServeEndpoints kserve_;  // /v2: the Open Inference Protocol

@@ -30,7 +30,7 @@ struct Server::Impl {
   tcp::acceptor acceptor{accept_strand};
   net::signal_set signals{accept_strand};
   Metrics metrics;
-  ModelHost host;
+  ModelHosts hosts;
   ActPipeline pipeline;
   Router router;
   HttpSessions sessions;
@@ -40,14 +40,14 @@ struct Server::Impl {
   uint16_t bound_port = 0;
   std::vector<std::pair<std::string, uint16_t>> transport_ports;
 
-  Impl(ServerOptions o, EngineLoader loader)
+  Impl(ServerOptions o, std::vector<HostLoader> loaders)
       : opts(std::move(o)),
         metrics(TETHER_VERSION, ""),
-        host(std::move(loader), opts.batch, opts.wedges, metrics),
-        pipeline(opts, host, metrics),
-        router(opts, host, metrics, pipeline),
+        hosts(std::move(loaders), opts.batch, opts.wedges, metrics),
+        pipeline(opts, hosts, metrics),
+        router(opts, hosts, metrics, pipeline),
         sessions(opts, router, metrics),
-        transports(make_transports({opts, host, metrics, pipeline, ioc,
+        transports(make_transports({opts, hosts, metrics, pipeline, ioc,
                                      [this] { net::post(accept_strand, [this] { begin_shutdown(); }); }})) {}
 
   int in_flight() const {
@@ -61,7 +61,7 @@ struct Server::Impl {
   }
 
   void load_model() {
-    if (!host.load()) net::post(accept_strand, [this] { begin_shutdown(); });
+    if (!hosts.load()) net::post(accept_strand, [this] { begin_shutdown(); });
   }
 
   void spawn_session(tcp::socket socket) {
@@ -132,12 +132,15 @@ struct Server::Impl {
 };
 
 Server::Server(ServerOptions options, EngineLoader loader)
-    : impl_(std::make_unique<Impl>(std::move(options), std::move(loader))) {}
+    : Server(std::move(options), std::vector<HostLoader>{{"", std::move(loader)}}) {}
+
+Server::Server(ServerOptions options, std::vector<HostLoader> hosts)
+    : impl_(std::make_unique<Impl>(std::move(options), std::move(hosts))) {}
 
 Server::~Server() {
   impl_->stop_transports();
   if (impl_->load_thread.joinable()) impl_->load_thread.join();
-  impl_->host.stop();
+  impl_->hosts.stop();
 }
 
 uint16_t Server::start() {
@@ -183,8 +186,8 @@ void Server::run(bool handle_signals) {
   for (auto& t : threads) t.join();
   m.stop_transports();
   if (m.load_thread.joinable()) m.load_thread.join();
-  m.host.stop();
-  if (m.host.load_error()) std::rethrow_exception(m.host.load_error());
+  m.hosts.stop();
+  if (m.hosts.load_error()) std::rethrow_exception(m.hosts.load_error());
 }
 
 void Server::stop() {
@@ -196,6 +199,8 @@ uint16_t Server::port() const { return impl_->bound_port; }
 
 std::vector<std::pair<std::string, uint16_t>> Server::transport_ports() const { return impl_->transport_ports; }
 
-HealthState Server::health() const { return impl_->host.health(); }
+HealthState Server::health() const { return impl_->hosts.health(); }
+
+ModelHosts& Server::hosts() { return impl_->hosts; }
 
 }  // namespace tether::serve

@@ -27,6 +27,8 @@ class Server {
  public:
   using EngineLoader = serve::EngineLoader;
   Server(ServerOptions options, EngineLoader loader);
+  // One host per embodiment (serve/model_host.h's ModelHosts), loaded in order; the first is the default.
+  Server(ServerOptions options, std::vector<HostLoader> hosts);
   ~Server();
   Server(const Server&) = delete;
   Server& operator=(const Server&) = delete;
@@ -44,6 +46,7 @@ class Server {
   // The transports besides HTTP that start() bound, by name (Transport::name), in start order.
   std::vector<std::pair<std::string, uint16_t>> transport_ports() const;
   HealthState health() const;
+  ModelHosts& hosts();
 
  private:
   struct Impl;

@@ -21,7 +21,7 @@ namespace tether::serve {
 // What a transport may use; everything outlives it.
 struct TransportContext {
   const ServerOptions& options;
-  ModelHost& host;
+  ModelHosts& hosts;  // one per embodiment served; requests are routed by the pipeline (ActInput::embodiment)
   Metrics& metrics;
   ActPipeline& pipeline;
   boost::asio::io_context& ioc;  // the server's I/O threads: pipeline.run is awaited here

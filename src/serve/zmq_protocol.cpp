@@ -16,9 +16,11 @@ namespace {
 
 std::string kind_of(const msgpack::Value& v) { return msgpack::kind_name(v.kind); }
 
-const char* const kFields = "instruction, state, image, images, episode_id, seed, rtc, api_key, request_id, id";
+const char* const kFields =
+    "instruction, state, image, images, episode_id, seed, rtc, embodiment_tag, api_key, request_id, id";
 const char* const kHttpFields =
-    "instruction, state, image, images, episode_id, seed, rtc; the key and the request id travel as headers";
+    "instruction, state, image, images, episode_id, seed, rtc, embodiment_tag; the key and the request id travel as "
+    "headers";
 
 const msgpack::Value* field(const msgpack::Value& map, std::string_view key) {
   const msgpack::Value* v = map.find(key);
@@ -143,8 +145,8 @@ namespace {
 // The /act fields of a msgpack map; `envelope`: api_key, request_id and id are accepted too (ZMQ carries them in the
 // message, HTTP in its headers).
 ActRequest decode_fields(const msgpack::Value& m, const models::ModelSpec& spec, bool envelope) {
-  static const char* const kKnown[] = {"instruction", "state", "image", "images", "episode_id", "seed", "rtc",
-                                       "api_key", "request_id", "id"};
+  static const char* const kKnown[] = {"instruction", "state",   "image",      "images", "episode_id", "seed",
+                                       "rtc",         "embodiment_tag", "api_key", "request_id", "id"};
   const std::size_t known_count = envelope ? std::size(kKnown) : std::size(kKnown) - 3;
   for (const auto& [k, _] : m.entries) {
     bool known = false;
@@ -201,6 +203,14 @@ ActRequest decode_fields(const msgpack::Value& m, const models::ModelSpec& spec,
     req.seed = seed->above_int64 ? seed->uinteger : uint64_t(seed->integer);
   }
   if (const msgpack::Value* rtc = field(m, "rtc")) req.rtc = rtc_of(*rtc, spec);
+  if (const msgpack::Value* tag = field(m, "embodiment_tag")) {
+    if (!tag->is_str()) fail("invalid_field", "embodiment_tag: expected a string, got " + kind_of(*tag));
+    // The pipeline routed the request by this tag (embodiment_of) to the host whose spec this is.
+    if (tag->bytes != spec.embodiment)
+      fail("invalid_field", "embodiment_tag: '" + std::string(tag->bytes.substr(0, 64)) + "' is not the embodiment '" +
+                                spec.embodiment + "' this request was decoded for");
+    req.embodiment = spec.embodiment;
+  }
   check_observation(obs, spec);
   return req;
 }
@@ -213,6 +223,19 @@ ActRequest decode_act(const Request& request, const models::ModelSpec& spec) {
 
 ActRequest decode_message(std::string_view message, const models::ModelSpec& spec) {
   return decode_act(parse_request(message), spec);
+}
+
+std::string embodiment_of(const msgpack::Value& map) {
+  const msgpack::Value* tag = map.is_map() ? field(map, "embodiment_tag") : nullptr;
+  return tag && tag->is_str() ? std::string(tag->bytes) : std::string();
+}
+
+std::string http_body_embodiment(std::string_view body) {
+  try {
+    return embodiment_of(msgpack::parse_map(body, "body", "with /act's fields"));
+  } catch (const std::exception&) {
+    return "";  // decode_http_body reports it
+  }
 }
 
 ActRequest decode_http_body(std::string_view body, const models::ModelSpec& spec) {

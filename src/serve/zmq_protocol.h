@@ -36,6 +36,12 @@ ActRequest decode_message(std::string_view message, const models::ModelSpec& spe
 // bad_msgpack) for bytes that are not one msgpack map, else decode_act's codes.
 ActRequest decode_http_body(std::string_view body, const models::ModelSpec& spec);
 
+// The "embodiment_tag" string of a request map (ActInput::embodiment routes by it); empty when absent or not a
+// string (decode_act then refuses it). http_body_embodiment: the same for an HTTP msgpack body, empty when the body
+// does not parse.
+std::string embodiment_of(const msgpack::Value& map);
+std::string http_body_embodiment(std::string_view body);
+
 // The /act answer (or {"error": {...}}) as a msgpack map, `actions` rows as float32 arrays: HTTP's msgpack answer.
 std::string encode_body(const Json& body);
 

@@ -68,6 +68,7 @@ class ZmqTransport final : public Transport {
       x->input.wire_bytes = x->payload.size();
       x->input.decode = [raw](const models::ModelSpec& spec) { return zmqp::decode_act(raw->request, spec); };
       x->input.act_json = [](const ActRequest& r) { return act_request_json(r); };
+      x->input.embodiment = [raw] { return zmqp::embodiment_of(raw->request.root); };
     } catch (...) {
       // Not even the envelope reads (not msgpack, not a map): every message is an /act request, so the pipeline
       // refuses this one at its decoding step and it is counted and traced like any other (after the API key check:

@@ -60,8 +60,9 @@ struct Fixture {
   explicit Fixture(ServerOptions o = {}, bool load = true)
       : opts(std::move(o)),
         metrics("test", ""),
-        host([f = fail] { return fake_engine(f); }, opts.batch, opts.wedges, metrics),
-        pipeline(opts, host, metrics) {
+        hosts({{"", [f = fail] { return fake_engine(f); }}}, opts.batch, opts.wedges, metrics),
+        host(hosts.primary()),
+        pipeline(opts, hosts, metrics) {
     if (load) {
       EXPECT_TRUE(host.load());
     }
@@ -80,7 +81,8 @@ struct Fixture {
   std::shared_ptr<std::atomic<bool>> fail = std::make_shared<std::atomic<bool>>(false);
   ServerOptions opts;
   Metrics metrics;
-  ModelHost host;
+  ModelHosts hosts;
+  ModelHost& host;
   ActPipeline pipeline;
 };
 
