@@ -74,6 +74,11 @@ Verb add_go(CLI::App& app) {
             if (args->list) return list_models(reg, false);
             if (args->model.empty()) throw Error(ErrorCode::invalid_argument, "--model is required (see tether go --list)");
             const RegistryEntry& e = reg.get(args->model);
+            // The export holds one embodiment's statistics (cached per tag): several are served from the checkpoint.
+            if (args->flags.embodiment_tags.size() > 1)
+              throw Error(ErrorCode::invalid_argument,
+                          "go serves one --embodiment-tag; serve several from the checkpoint with `tether serve "
+                          "<checkpoint> --embodiment-tag a,b`");
             // The probe comes first: what this machine offers decides the precision and where the model runs.
             const MachineProbe machine = probe_machine();
             std::fprintf(stderr, "tether go: %s\ntether go: %s\n", cpu_summary(machine).c_str(),
@@ -101,11 +106,6 @@ Verb add_go(CLI::App& app) {
             flags.precision = choice.precision;
             // KServe's model name: the registry id, not the export directory's name.
             if (flags.options.model_name.empty()) flags.options.model_name = e.id;
-            // The export holds one embodiment's statistics (cached per tag): several are served from the checkpoint.
-            if (flags.embodiment_tags.size() > 1)
-              throw Error(ErrorCode::invalid_argument,
-                          "go serves one --embodiment-tag; serve several with `tether serve " + *src +
-                              " --embodiment-tag ...`");
             const std::string tag = flags.embodiment_tags.empty() ? "" : flags.embodiment_tags.front();
             const std::string dir = cached_export(e, *src, flags.precision, tag);
             std::fprintf(stderr, "tether go: %s -> %s (%s)\n", e.id.c_str(), dir.c_str(), flags.precision.c_str());

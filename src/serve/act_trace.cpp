@@ -29,6 +29,7 @@ void record_trace(runtime::Wedges& wedges, Metrics& metrics, const Engine& engin
                {"transport", t.transport.empty() ? Json(nullptr) : Json(t.transport)},
                {"model", engine.model_name},
                {"model_hash", engine.model_hash},
+               {"embodiment", engine.spec.embodiment.empty() ? Json(nullptr) : Json(engine.spec.embodiment)},
                {"status", status == 200 ? "success" : "failed"},
                {"http_status", status},
                {"error", code.empty() ? Json(nullptr) : Json{{"code", code}, {"message", message}}},

@@ -66,8 +66,9 @@ bool ModelHost::load() {
     engine_ = std::move(e);
     batcher_ = std::move(b);
     state_.store(HealthState::warming, std::memory_order_release);
-    std::fprintf(stderr, "tether serve: model loaded (%s, %s); warming up\n", engine_->spec.family.c_str(),
-                 engine_->model_hash.c_str());
+    const std::string tag = engine_->spec.embodiment.empty() ? "" : ", embodiment " + engine_->spec.embodiment;
+    std::fprintf(stderr, "tether serve: model loaded (%s%s, %s); warming up\n", engine_->spec.family.c_str(),
+                 tag.c_str(), engine_->model_hash.c_str());
     for (const auto& warning : engine_->load_warnings)
       std::fprintf(stderr, "tether serve: warning: %s\n", warning.c_str());
     try {

@@ -157,6 +157,20 @@ TEST(Gr00tCli, EmbodimentAndObservationErrorsAreOneLine) {
   }
 }
 
+TEST(Gr00tCli, ServingSeveralEmbodimentsRefusesAnUnknownOrRepeatedTag) {
+  const std::string ckpt = (kCase / "checkpoint").string();
+  CliRun r = run_gr00t("serve " + ckpt + " --port 0 --embodiment-tag libero_sim,robot_x");
+  EXPECT_EQ(r.code, 2);
+  EXPECT_NE(r.err.find("error: unknown embodiment tag 'robot_x'"), std::string::npos) << r.err;
+  r = run_gr00t("serve " + ckpt + " --port 0 --embodiment-tag libero_sim --embodiment-tag libero_sim");
+  EXPECT_EQ(r.code, 2);
+  EXPECT_NE(r.err.find("error: embodiment 'libero_sim' is named twice"), std::string::npos) << r.err;
+  // go exports one embodiment: several are served from the checkpoint.
+  r = run_gr00t("go --model gr00t-n1.7 --port 0 --embodiment-tag libero_sim,new_embodiment");
+  EXPECT_EQ(r.code, 2);
+  EXPECT_NE(r.err.find("go serves one --embodiment-tag"), std::string::npos) << r.err;
+}
+
 // N1.6: the checkpoint names Isaac-GR00T's Eagle directory, put in a hub cache under that id (eagle_hub.h).
 const fs::path kN16 = fs::path(TETHER_FIXTURES_DIR) / "gr00t_n16";
 

@@ -188,3 +188,133 @@ TEST(ActPipeline, RecordsATraceLineForSuccessAndFailure) {
   EXPECT_EQ(lines[1]["http_status"], 400);
   std::filesystem::remove_all(dir);
 }
+
+// Two embodiments of one model: "arm" (the fake engine: state 2) and "humanoid" (state 3, chunk offset by 1000).
+Engine embodiment_engine(const std::string& tag) {
+  Engine e = fake_engine(std::make_shared<std::atomic<bool>>(false));
+  e.spec.embodiment = tag;
+  if (tag == "humanoid") {
+    e.spec.state_dim = 3;
+    auto base = e.predict;
+    e.predict = [base](const std::vector<policy::Observation>& batch) {
+      policy::Prediction p = base(batch);
+      for (auto& c : p.items)
+        for (float& v : c.actions) v += 1000;
+      return p;
+    };
+  }
+  return e;
+}
+
+struct TwoEmbodiments {
+  explicit TwoEmbodiments(ServerOptions o = {})
+      : opts(std::move(o)),
+        metrics("test", ""),
+        hosts({{"arm", [] { return embodiment_engine("arm"); }}, {"humanoid", [] { return embodiment_engine("humanoid"); }}},
+              opts.batch, opts.wedges, metrics),
+        pipeline(opts, hosts, metrics) {
+    EXPECT_TRUE(hosts.load());
+  }
+  ~TwoEmbodiments() { hosts.stop(); }
+
+  ActResponse run(Json body) {
+    RequestContext ctx;
+    ctx.request_id = "req-1";
+    ctx.received = std::chrono::steady_clock::now();
+    net::io_context ioc;
+    const std::string text = body.dump();
+    auto future = net::co_spawn(ioc, pipeline.run(text, ctx), net::use_future);
+    ioc.run();
+    return future.get();
+  }
+
+  ServerOptions opts;
+  Metrics metrics;
+  ModelHosts hosts;
+  ActPipeline pipeline;
+};
+
+Json act_json(std::vector<float> state, std::optional<std::string> tag) {
+  Json j = Json::parse(act_body(state[0]));
+  j["state"] = state;
+  if (tag) j["embodiment_tag"] = *tag;
+  return j;
+}
+
+TEST(ModelHosts, RoutesEachRequestToItsEmbodiment) {
+  TwoEmbodiments f;
+  EXPECT_EQ(f.hosts.embodiments(), (std::vector<std::string>{"arm", "humanoid"}));
+  const ActResponse arm = f.run(act_json({1, 0}, "arm"));
+  ASSERT_EQ(arm.status, 200) << arm.body.dump();
+  EXPECT_EQ(arm.body["actions"][0][0].get<float>(), 1.0f);
+  const ActResponse humanoid = f.run(act_json({1, 0, 0}, "humanoid"));
+  ASSERT_EQ(humanoid.status, 200) << humanoid.body.dump();
+  EXPECT_EQ(humanoid.body["actions"][0][0].get<float>(), 1001.0f);
+  // No tag: the first one.
+  EXPECT_EQ(f.run(act_json({2, 0}, std::nullopt)).body["actions"][0][0].get<float>(), 2.0f);
+  // Decoded against the embodiment named: the arm's state is not the humanoid's.
+  const ActResponse wrong = f.run(act_json({1, 0}, "humanoid"));
+  EXPECT_EQ(wrong.status, 400);
+  EXPECT_EQ(code_of(wrong), "invalid_state");
+}
+
+TEST(ModelHosts, AnUnknownTagIsA400ListingTheServedOnes) {
+  TwoEmbodiments f;
+  const ActResponse r = f.run(act_json({1, 0}, "quadruped"));
+  EXPECT_EQ(r.status, 400);
+  EXPECT_EQ(code_of(r), "unknown_embodiment");
+  EXPECT_NE(r.body["error"]["message"].get<std::string>().find("arm, humanoid"), std::string::npos);
+  Json bad = act_json({1, 0}, std::nullopt);
+  bad["embodiment_tag"] = 3;
+  const ActResponse typed = f.run(bad);
+  EXPECT_EQ(typed.status, 400);
+  EXPECT_EQ(code_of(typed), "invalid_field");
+  EXPECT_EQ(f.run(act_json({1, 0}, "arm")).status, 200);
+}
+
+TEST(ModelHosts, ASingleModelWithoutTagsRefusesANamedOne) {
+  Fixture f;
+  Json j = Json::parse(act_body(1));
+  j["embodiment_tag"] = "arm";
+  const ActResponse r = f.run(j.dump());
+  EXPECT_EQ(r.status, 400);
+  EXPECT_EQ(code_of(r), "unknown_embodiment");
+  EXPECT_NE(r.body["error"]["message"].get<std::string>().find("no embodiment tags"), std::string::npos);
+}
+
+TEST(ModelHosts, HealthIsTheLeastReadyHostsAndTagsMustBeDistinct) {
+  Metrics metrics("test", "");
+  ModelHosts hosts({{"arm", [] { return embodiment_engine("arm"); }},
+                    {"humanoid", []() -> Engine { throw Error(ErrorCode::not_found, "no such embodiment"); }}},
+                   {}, {}, metrics);
+  EXPECT_EQ(hosts.health(), HealthState::loading);
+  EXPECT_FALSE(hosts.load());
+  EXPECT_EQ(hosts.health(), HealthState::failed);
+  EXPECT_TRUE(hosts.load_error());
+  hosts.stop();
+  EXPECT_THROW(ModelHosts({{"arm", [] { return embodiment_engine("arm"); }}, {"arm", [] { return embodiment_engine("arm"); }}},
+                          {}, {}, metrics),
+               Error);
+  EXPECT_THROW(ModelHosts({{"", [] { return embodiment_engine("arm"); }}, {"humanoid", [] { return embodiment_engine("humanoid"); }}},
+                          {}, {}, metrics),
+               Error);
+}
+
+TEST(ModelHosts, EachEmbodimentRecordsItsOwnTraceChain) {
+  const std::filesystem::path dir = tether::testing::scratch_dir() / "embodiment_traces";
+  std::filesystem::remove_all(dir);
+  ServerOptions o;
+  o.wedges.record = runtime::TraceOptions{dir.string()};
+  TwoEmbodiments f(o);
+  ASSERT_EQ(f.run(act_json({1, 0}, "arm")).status, 200);
+  ASSERT_EQ(f.run(act_json({1, 0, 0}, "humanoid")).status, 200);
+  ASSERT_EQ(f.run(act_json({1, 0}, "humanoid")).status, 400);
+  f.hosts.stop();
+  for (const char* tag : {"arm", "humanoid"}) {
+    const auto lines = serve::testing::read_trace_lines(dir / tag);
+    ASSERT_FALSE(lines.empty()) << tag;
+    for (const auto& l : lines) EXPECT_EQ(l["embodiment"], tag);
+    EXPECT_EQ(lines.front()["seq"], 1);
+  }
+  EXPECT_EQ(serve::testing::read_trace_lines(dir / "humanoid").size(), 2u);
+}
