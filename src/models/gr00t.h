@@ -10,6 +10,7 @@
 #include <vector>
 
 #include "models/family.h"
+#include "models/normalization.h"
 
 namespace tether::models {
 
@@ -26,8 +27,13 @@ struct Gr00tEmbodiment {
   std::vector<std::string> cameras;  // video.modality_keys, in the model's order
   std::vector<ModalityGroup> state_groups, action_groups;
   int64_t action_horizon = 0;        // len(action.delta_indices): the rows a chunk keeps
-  // Bounds per group (q01/q99 with use_percentiles, else min/max), concatenated in group order.
+  // Bounds per group (q01/q99 with use_percentiles, else min/max), concatenated in group order. The action bounds
+  // hold `action_bound_rows` rows: 1, or the chunk's rows when a relative group has per-step statistics.
   std::vector<float> state_lo, state_hi, action_lo, action_hi;
+  int64_t action_bound_rows = 1;
+  // With use_relative_action: the action groups predicted relative to the state (lerobot's
+  // GrootN17ActionDecodeStep), unnormalised with relative_action's min/max and made absolute against the state.
+  std::vector<RelativeAction> relative;
 };
 
 // A sidecar file of a raw GR00T checkpoint (processor_config.json, statistics.json, embodiment_id.json): in the

@@ -29,8 +29,15 @@ TensorStore open_weights(const fs::path& dir) { return TensorStore::open_dir(dir
 // The served embodiment's bounds, min-max and clipped as lerobot's N1.7 pack and decode steps (and Isaac-GR00T's
 // StateActionProcessor for N1.6's actions) apply them. N1.6 encodes its state itself (sin/cos, mean/std or min/max
 // per group: the model file), so only N1.7 normalises the state here.
-Normalization gr00t_normalization(const fs::path& dir, const LoadOptions& options, bool state) {
-  const Gr00tEmbodiment e = read_gr00t_embodiment(dir, options.embodiment);
+Normalization gr00t_normalization(const fs::path& dir, const Json& config, const LoadOptions& options, bool state) {
+  Gr00tEmbodiment e = read_gr00t_embodiment(dir, options.embodiment);
+  // Per-step bounds (relative groups' statistics) for the rows a chunk keeps: min(model horizon, the embodiment's).
+  if (e.action_bound_rows > 1) {
+    const int64_t horizon = json_get_or<int64_t>(config, "action_horizon", 40, (dir / "config.json").string());
+    const int64_t rows = std::min(e.action_bound_rows, horizon), dim = int64_t(e.action_lo.size()) / e.action_bound_rows;
+    e.action_lo.resize(std::size_t(rows * dim));
+    e.action_hi.resize(std::size_t(rows * dim));
+  }
   const std::string stats = gr00t_sidecar(dir, "statistics.json").string();
   Normalization n;
   if (state) {
@@ -41,15 +48,16 @@ Normalization gr00t_normalization(const fs::path& dir, const LoadOptions& option
   FeatureNorm action{"ACTION", NormMode::min_max_clipped, false, {{"min", e.action_lo}, {"max", e.action_hi}}};
   finish_feature("action", action, stats, n.warnings);
   n.output.features["action"] = action;
+  n.output.relative = e.relative;
   return n;
 }
 
-Normalization load_normalization_n17(const fs::path& dir, const Json&, TensorStore&, const LoadOptions& options) {
-  return gr00t_normalization(dir, options, true);
+Normalization load_normalization_n17(const fs::path& dir, const Json& config, TensorStore&, const LoadOptions& options) {
+  return gr00t_normalization(dir, config, options, true);
 }
 
-Normalization load_normalization_n16(const fs::path& dir, const Json&, TensorStore&, const LoadOptions& options) {
-  return gr00t_normalization(dir, options, false);
+Normalization load_normalization_n16(const fs::path& dir, const Json& config, TensorStore&, const LoadOptions& options) {
+  return gr00t_normalization(dir, config, options, false);
 }
 
 // The sidecar files are copied, or, when one embodiment is exported, written narrowed to it (its modality config,

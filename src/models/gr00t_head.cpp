@@ -35,12 +35,13 @@ namespace {
 
 constexpr const char* kHead = "action_head.";
 
-// An enum string of the modality config ("ABSOLUTE", "absolute", "ActionRepresentation.ABSOLUTE") in lower case.
-std::string enum_value(const Json& v) {
+// A modality config enum as lerobot's config_value reads it: lower case, "xyz_rot6d" spelled "xyz+rot6d".
+std::string config_value(const Json& v) {
   if (!v.is_string()) return "";
   std::string s = v.get<std::string>();
-  if (auto dot = s.rfind('.'); dot != std::string::npos) s = s.substr(dot + 1);
   std::transform(s.begin(), s.end(), s.begin(), [](unsigned char c) { return char(std::tolower(c)); });
+  if (s == "xyz_rot6d") return "xyz+rot6d";
+  if (s == "xyz_rotvec") return "xyz+rotvec";
   return s;
 }
 
@@ -69,6 +70,100 @@ void read_groups(const Json& modality, const Json& stats, const std::string& kin
     for (double v : l) lo.push_back(float(v));
     for (double v : h) hi.push_back(float(v));
   }
+}
+
+// The relative action groups (action_configs rep RELATIVE) of an embodiment read with use_relative_action: their
+// min/max from statistics.json's relative_action (one row, or one per chunk step), and the state group each is
+// anchored to (state_key, else its own name). Fills e.relative and turns e.action_lo/hi into per-row bounds when a
+// group has per-step statistics.
+void read_relative_groups(const Json& action, const Json& stats, const std::string& stats_where,
+                          const std::string& where, Gr00tEmbodiment& e) {
+  const Json configs = action.value("action_configs", Json::array());
+  const int64_t rows = e.action_horizon, dim = int64_t(e.action_lo.size());
+  struct Bounds {
+    int64_t offset, width;
+    std::vector<std::vector<float>> lo, hi;  // one row, or one per step
+  };
+  std::vector<Bounds> relative_bounds;
+  int64_t offset = 0;
+  for (std::size_t i = 0; i < e.action_groups.size(); ++i) {
+    const ModalityGroup& g = e.action_groups[i];
+    const Json cfg = i < configs.size() && configs[i].is_object() ? configs[i] : Json::object();
+    if (config_value(cfg.value("rep", Json("absolute"))) != "relative") {
+      offset += g.dim;
+      continue;
+    }
+    const std::string type = config_value(cfg.value("type", Json(""))), format = config_value(cfg.value("format", Json("")));
+    RelativeAction r;
+    r.name = g.name;
+    r.action_offset = offset;
+    r.dim = g.dim;
+    if (type == "non_eef") r.kind = RelativeAction::Kind::joint;
+    else if (type == "eef" && format == "xyz+rot6d") r.kind = RelativeAction::Kind::eef_xyz_rot6d;
+    else
+      throw Error(ErrorCode::unsupported, where + ": relative action '" + g.name + "' is " + type + " " + format +
+                                              " (supported: NON_EEF, and EEF in XYZ_ROT6D, as lerobot decodes them)");
+    const std::string state_key = cfg.value("state_key", Json(nullptr)).is_string()
+                                      ? cfg.at("state_key").get<std::string>()
+                                      : g.name;
+    int64_t state_offset = 0;
+    bool found = false;
+    for (const ModalityGroup& s : e.state_groups) {
+      if (s.name == state_key) {
+        if (s.dim != g.dim)
+          throw Error(ErrorCode::format, where + ": relative action '" + g.name + "' has " + std::to_string(g.dim) +
+                                             " values, its state '" + state_key + "' " + std::to_string(s.dim));
+        found = true;
+        break;
+      }
+      state_offset += s.dim;
+    }
+    if (!found)
+      throw Error(ErrorCode::format, where + ": relative action '" + g.name + "' names state '" + state_key +
+                                         "', which the embodiment does not have");
+    if (r.kind == RelativeAction::Kind::eef_xyz_rot6d && g.dim != 9)
+      throw Error(ErrorCode::format, where + ": relative EEF action '" + g.name + "' has " + std::to_string(g.dim) +
+                                         " values; xyz+rot6d has 9");
+    r.state_offset = state_offset;
+    // Its bounds: relative_action's min/max (never the percentiles), [D] or [steps][D].
+    const Json& per_key = stats.value("relative_action", Json::object());
+    if (!per_key.contains(g.name))
+      throw Error(ErrorCode::format, stats_where + ": no relative_action statistics for '" + g.name + "'");
+    Bounds b{offset, g.dim, {}, {}};
+    for (const char* name : {"min", "max"}) {
+      const Json& v = per_key.at(g.name).value(name, Json(nullptr));
+      auto& out = std::string(name) == "min" ? b.lo : b.hi;
+      if (v.is_array() && !v.empty() && v[0].is_array()) out = v.get<std::vector<std::vector<float>>>();
+      else if (v.is_array()) out = {v.get<std::vector<float>>()};
+      else throw Error(ErrorCode::format, stats_where + ": relative_action '" + g.name + "' has no " + name);
+      for (const auto& row : out)
+        if (int64_t(row.size()) != g.dim)
+          throw Error(ErrorCode::format, stats_where + ": relative_action '" + g.name + "' " + name + " rows have " +
+                                             std::to_string(row.size()) + " values, expected " + std::to_string(g.dim));
+      if (out.size() > 1 && int64_t(out.size()) < rows)
+        throw Error(ErrorCode::format, stats_where + ": relative_action '" + g.name + "' " + name + " has " +
+                                           std::to_string(out.size()) + " steps for a chunk of " + std::to_string(rows));
+    }
+    if (b.lo.size() > 1 || b.hi.size() > 1) e.action_bound_rows = rows;
+    relative_bounds.push_back(std::move(b));
+    e.relative.push_back(r);
+    offset += g.dim;
+  }
+  // The bounds, row by row: the absolute groups' repeated, the relative ones' from their row (or their only one).
+  const int64_t R = e.action_bound_rows;
+  std::vector<float> lo(std::size_t(R * dim)), hi(std::size_t(R * dim));
+  for (int64_t r = 0; r < R; ++r)
+    for (int64_t c = 0; c < dim; ++c) lo[std::size_t(r * dim + c)] = e.action_lo[std::size_t(c)],
+                                      hi[std::size_t(r * dim + c)] = e.action_hi[std::size_t(c)];
+  for (const Bounds& b : relative_bounds)
+    for (int64_t r = 0; r < R; ++r)
+      for (int64_t c = 0; c < b.width; ++c) {
+        const std::size_t at = std::size_t(r * dim + b.offset + c);
+        lo[at] = b.lo[b.lo.size() > 1 ? std::size_t(r) : 0][std::size_t(c)];
+        hi[at] = b.hi[b.hi.size() > 1 ? std::size_t(r) : 0][std::size_t(c)];
+      }
+  e.action_lo = std::move(lo);
+  e.action_hi = std::move(hi);
 }
 
 }  // namespace
@@ -129,13 +224,6 @@ Gr00tEmbodiment read_gr00t_embodiment(const fs::path& dir, const std::string& wa
   const Json action = m.value("action", Json::object());
   e.action_horizon = int64_t(action.value("delta_indices", Json::array()).size());
   if (e.action_horizon <= 0) throw Error(ErrorCode::format, where + ": embodiment '" + tag + "' has no action steps");
-  for (const Json& c : action.value("action_configs", Json::array()))
-    if (enum_value(c.value("rep", Json("absolute"))) == "relative")
-      throw Error(ErrorCode::unsupported, where + ": embodiment '" + tag +
-                                              "' has relative actions, which Tether does not decode yet");
-  if (json_get_or<bool>(kwargs, "use_relative_action", false, where))
-    throw Error(ErrorCode::unsupported, where + ": use_relative_action is not supported yet");
-
   const fs::path stats_path = gr00t_sidecar(dir, "statistics.json");
   if (!fs::is_regular_file(stats_path))
     throw Error(ErrorCode::not_found, stats_path.string() + ": missing (GR00T's normalisation statistics)");
@@ -144,6 +232,10 @@ Gr00tEmbodiment read_gr00t_embodiment(const fs::path& dir, const std::string& wa
   const bool percentiles = json_get_or<bool>(kwargs, "use_percentiles", true, where);
   read_groups(m, stats.at(tag), "state", percentiles, stats_path.string(), e.state_groups, e.state_lo, e.state_hi);
   read_groups(m, stats.at(tag), "action", percentiles, stats_path.string(), e.action_groups, e.action_lo, e.action_hi);
+  // lerobot reads the relative groups only with use_relative_action; without it a RELATIVE group decodes as an
+  // absolute one, with the action statistics.
+  if (json_get_or<bool>(kwargs, "use_relative_action", false, where))
+    read_relative_groups(action, stats.at(tag), stats_path.string(), where, e);
   return e;
 }
 
@@ -351,6 +443,7 @@ std::size_t Gr00tModel::add_embodiment(const fs::path& dir, const std::string& t
   s.action_dim = 0;
   for (const auto& g : s.action_groups) s.action_dim += g.dim;
   s.chunk_size = std::min(e.action_horizon, head_.action_horizon);
+  s.relative_actions = !e.relative.empty();
   if (s.state_dim > head_.max_state_dim || s.action_dim > head_.max_action_dim)
     throw Error(ErrorCode::format, where_ + ": embodiment '" + e.tag + "' has more state or action values than "
                                             "max_state_dim / max_action_dim");

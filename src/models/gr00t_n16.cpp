@@ -64,6 +64,14 @@ class Gr00tN16 final : public Gr00tModel {
   backend::Array<uint8_t> causal_;
 };
 
+// What N1.6 cannot serve yet: relative actions (Isaac-GR00T's StateActionProcessor decodes them its own way, which no
+// oracle here runs; N1.7's are lerobot's).
+void add_state_encoding_checks(const Gr00tEmbodiment& e) {
+  if (!e.relative.empty())
+    throw Error(ErrorCode::unsupported, "embodiment '" + e.tag + "' has relative actions ('" + e.relative.front().name +
+                                            "'), which Tether decodes for GR00T N1.7 only");
+}
+
 // StateActionProcessor's statistics of one state group: min/max (or q01/q99), mean/std.
 std::vector<double> stat_values(const Json& stats, const std::string& key, const char* name, int64_t dim,
                                 const std::string& where) {
@@ -91,7 +99,7 @@ Gr00tN16::Gr00tN16(const fs::path& dir, const Json& config, TensorStore store, c
   const cpu::Precision precision = options.precision;
   head_ = Gr00tHeadConfig::from_json(config, where, "nvidia/Eagle-Block2A-2B-v2");
   if (head_.vl_layers != 0) throw Error(ErrorCode::format, where + ": N1.6 has no VL self-attention");
-  read_gr00t_embodiment(dir, options.embodiment);  // an unknown tag fails here, before the backbone loads
+  add_state_encoding_checks(read_gr00t_embodiment(dir, options.embodiment));  // before the backbone loads
   const Json kwargs = gr00t_processor_kwargs(dir);
   const std::string pwhere = gr00t_sidecar(dir, "processor_config.json").string();
   geometry_ = vision::Gr00tImageGeometry::from_n16_processor_kwargs(kwargs, pwhere);
@@ -169,6 +177,7 @@ Gr00tN16::Gr00tN16(const fs::path& dir, const Json& config, TensorStore store, c
 }
 
 void Gr00tN16::add_state_encoding(const fs::path& dir, const Gr00tEmbodiment& e) {
+  add_state_encoding_checks(e);
   // The state groups' encodings and statistics, in modality order.
   const Json kwargs = gr00t_processor_kwargs(dir);
   const std::string pwhere = gr00t_sidecar(dir, "processor_config.json").string();

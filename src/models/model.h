@@ -83,6 +83,9 @@ struct ModelSpec {
   // How a request's RTC leftover steers the sampler; rtc_ramp_rate: the inpainting ramp (GR00T's config).
   RtcMethod rtc = RtcMethod::guidance;
   float rtc_ramp_rate = 0;
+  // Some action groups are predicted relative to the state (GR00T's use_relative_action): a previous chunk's leftover
+  // is tied to an older state, so real-time chunking is refused, as lerobot turns it off.
+  bool relative_actions = false;
 };
 
 struct LoadOptions {

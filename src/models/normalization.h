@@ -24,9 +24,19 @@ struct FeatureNorm {
   std::map<std::string, std::vector<float>> stats;  // "mean", "std", "min", "max", "q01", ...
 };
 
+// An action group predicted relative to the robot's current state (GR00T N1.7 with use_relative_action), made
+// absolute after unnormalisation against the request's raw state: `joint` adds the state group; `eef_xyz_rot6d`
+// composes poses (translation + the first two rows of a rotation matrix), T_abs = T_state * T_action, in float64.
+struct RelativeAction {
+  enum class Kind { joint, eef_xyz_rot6d } kind = Kind::joint;
+  std::string name;  // the action group
+  int64_t action_offset = 0, state_offset = 0, dim = 0;  // columns in the action and the state vectors
+};
+
 struct NormalizationSpec {
   std::map<std::string, FeatureNorm> features;  // feature key -> how it is (un)normalised
   float eps = 1e-8f;
+  std::vector<RelativeAction> relative;  // outputs only: groups made absolute after unnormalising
 };
 
 // What a family read: how inputs are normalised and outputs unnormalised, plus sentences for the user.

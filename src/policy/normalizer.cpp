@@ -1,6 +1,9 @@
 // The normalisation arithmetic, operation for operation as lerobot writes it.
 #include "policy/normalizer.h"
 
+#include <array>
+#include <cmath>
+
 #include "core/error.h"
 
 namespace tether::policy {
@@ -62,11 +65,65 @@ void Normalizer::apply(const std::string& key, float* x, int64_t n, Direction di
   }
 }
 
+namespace {
+
+// lerobot's rot6d_to_matrix and xyz_rot6d_to_homogeneous (groot/utils.py), float64: the 6 values are the first two
+// rows of the rotation, Gram-Schmidt orthonormalised, the third row their cross product.
+using Pose = std::array<std::array<double, 4>, 4>;
+
+double norm3(const double* v) { return std::sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2]); }
+
+Pose xyz_rot6d_pose(const float* p) {
+  double r1[3], r2[3];
+  for (int k = 0; k < 3; ++k) r1[k] = p[3 + k], r2[k] = p[6 + k];
+  const double n1 = norm3(r1);
+  for (double& v : r1) v /= n1;
+  const double d = r1[0] * r2[0] + r1[1] * r2[1] + r1[2] * r2[2];
+  for (int k = 0; k < 3; ++k) r2[k] -= d * r1[k];
+  const double n2 = norm3(r2);
+  for (double& v : r2) v /= n2;
+  const double r3[3] = {r1[1] * r2[2] - r1[2] * r2[1], r1[2] * r2[0] - r1[0] * r2[2], r1[0] * r2[1] - r1[1] * r2[0]};
+  Pose t{};
+  for (int k = 0; k < 3; ++k) t[0][k] = r1[k], t[1][k] = r2[k], t[2][k] = r3[k], t[k][3] = p[k];
+  t[3][3] = 1.0;
+  return t;
+}
+
+}  // namespace
+
+void Normalizer::to_absolute(float* actions, int64_t rows, int64_t dim, const std::vector<float>& raw_state) const {
+  for (const models::RelativeAction& g : relative_) {
+    if (g.action_offset + g.dim > dim || g.state_offset + g.dim > int64_t(raw_state.size()))
+      throw Error(ErrorCode::internal, "relative action group '" + g.name + "' lies outside the action or state");
+    const float* ref = raw_state.data() + g.state_offset;
+    if (g.kind == models::RelativeAction::Kind::joint) {
+      for (int64_t r = 0; r < rows; ++r)
+        for (int64_t c = 0; c < g.dim; ++c) actions[r * dim + g.action_offset + c] += ref[c];
+      continue;
+    }
+    const Pose t_ref = xyz_rot6d_pose(ref);
+    for (int64_t r = 0; r < rows; ++r) {
+      float* a = actions + r * dim + g.action_offset;
+      const Pose t_rel = xyz_rot6d_pose(a);
+      Pose t{};
+      for (int i = 0; i < 4; ++i)
+        for (int j = 0; j < 4; ++j)
+          for (int k = 0; k < 4; ++k) t[i][j] += t_ref[i][k] * t_rel[k][j];
+      // Back to xyz + the first two rows, cast to float32.
+      for (int k = 0; k < 3; ++k) a[k] = float(t[k][3]), a[3 + k] = float(t[0][k]), a[6 + k] = float(t[1][k]);
+    }
+  }
+}
+
 std::vector<std::string> Normalizer::describe() const {
   std::vector<std::string> out;
   for (const auto& [key, f] : features_)
     out.push_back(key + ": " + norm_mode_name(f.mode) +
                   (f.mode == NormMode::identity ? "" : f.has_stats ? " (stats present)" : " (no stats: identity)"));
+  for (const auto& g : relative_)
+    out.push_back("action '" + g.name + "': relative to the state (" +
+                  (g.kind == models::RelativeAction::Kind::joint ? "added to it" : "an xyz+rot6d pose composed with it") +
+                  ")");
   return out;
 }
 

@@ -17,7 +17,8 @@ using models::NormMode;
 class Normalizer {
  public:
   Normalizer() = default;
-  explicit Normalizer(models::NormalizationSpec spec) : features_(std::move(spec.features)), eps_(spec.eps) {}
+  explicit Normalizer(models::NormalizationSpec spec)
+      : features_(std::move(spec.features)), eps_(spec.eps), relative_(std::move(spec.relative)) {}
 
   void normalize(const std::string& key, float* x, int64_t n) const { apply(key, x, n, Direction::normalize); }
   void unnormalize(const std::string& key, float* x, int64_t n) const { apply(key, x, n, Direction::unnormalize); }
@@ -26,6 +27,10 @@ class Normalizer {
   void invert_unnormalize(const std::string& key, float* x, int64_t n) const {
     apply(key, x, n, Direction::invert_unnormalize);
   }
+  // Relative action groups made absolute against the request's raw (robot-unit) state: `actions` holds `rows` rows of
+  // `dim` values, after unnormalize. No-op without relative groups.
+  void to_absolute(float* actions, int64_t rows, int64_t dim, const std::vector<float>& raw_state) const;
+  bool has_relative() const { return !relative_.empty(); }
   const std::map<std::string, FeatureNorm>& features() const { return features_; }
   // One line per feature: "observation.state: MEAN_STD (stats present)".
   std::vector<std::string> describe() const;
@@ -36,6 +41,7 @@ class Normalizer {
   void apply(const std::string& key, float* x, int64_t n, Direction direction) const;
   std::map<std::string, FeatureNorm> features_;
   float eps_ = 1e-8f;
+  std::vector<models::RelativeAction> relative_;
 };
 
 }  // namespace tether::policy

@@ -22,6 +22,9 @@ models::DenoiseControl denoise_control(const Observation& o, const models::Model
     fail("adaptive_threshold must be a finite number >= 0, got " + std::to_string(o.adaptive_threshold));
   c.adaptive_threshold = o.adaptive_threshold;
   if (!o.rtc) return c;
+  if (s.relative_actions)
+    fail("rtc: this embodiment predicts actions relative to the state, so a previous chunk's leftover does not "
+         "carry over; real-time chunking is off for it");
   const Observation::Rtc& r = *o.rtc;
   const int64_t A = s.action_dim, C = s.chunk_size, values = int64_t(r.prev_actions.size());
   const int64_t n = values / A;
@@ -134,6 +137,7 @@ Prediction Policy::predict(const std::vector<Observation>& batch) {
     chunk.action_dim = m.action_dim;
     chunk.actions.assign(m.actions.begin() + b * per_item, m.actions.begin() + (b + 1) * per_item);
     post_.unnormalize(s.action_key, chunk.actions.data(), per_item);
+    post_.to_absolute(chunk.actions.data(), m.chunk_size, m.action_dim, batch[std::size_t(b)].state);
     chunk.warnings = m.warnings[b];
     chunk.denoise_steps_used = m.steps_used.empty() ? 0 : m.steps_used[b];
     out.items.push_back(std::move(chunk));

@@ -4,6 +4,7 @@
 #include <gtest/gtest.h>
 
 #include <filesystem>
+#include <functional>
 #include <fstream>
 
 #include "cli_runner.h"
@@ -169,6 +170,61 @@ TEST(Gr00tCli, ServingSeveralEmbodimentsRefusesAnUnknownOrRepeatedTag) {
   r = run_gr00t("go --model gr00t-n1.7 --port 0 --embodiment-tag libero_sim,new_embodiment");
   EXPECT_EQ(r.code, 2);
   EXPECT_NE(r.err.find("go serves one --embodiment-tag"), std::string::npos) << r.err;
+}
+
+// A relative-action checkpoint (tests/fixtures/gr00t_n17_relative) with one sidecar changed: predicts, or fails at
+// load with one line naming the group at fault.
+TEST(Gr00tCli, RelativeActionConfigsAreReadOrRefusedByName) {
+  const fs::path source = fs::path(TETHER_FIXTURES_DIR) / "gr00t_n17_relative";
+  const std::string obs = " --image front=" + (source / "inputs" / "front.png").string() + " --image wrist=" +
+                          (source / "inputs" / "wrist.png").string() +
+                          " --state=0.4,-0.1,0.3,1,0,0,0,1,0,0.2,-0.6,1.1,0.05,0.4 --instruction 'lift the cup' --seed 2";
+  struct Change {
+    std::string what;  // the JSON file, then how it changes
+    std::function<void(tether::Json&)> edit;
+    std::string says;  // empty: it predicts
+  };
+  const Change changes[] = {
+      {"processor_config.json", [](tether::Json& j) { j["processor_kwargs"]["use_relative_action"] = false; }, ""},
+      {"processor_config.json",
+       [](tether::Json& j) {
+         j["processor_kwargs"]["modality_configs"]["relative_arm"]["action"]["action_configs"][0]["format"] = "XYZ_ROTVEC";
+       },
+       "relative action 'eef' is eef xyz+rotvec"},
+      {"processor_config.json",
+       [](tether::Json& j) {
+         j["processor_kwargs"]["modality_configs"]["relative_arm"]["action"]["action_configs"][1]["state_key"] = "base";
+       },
+       "relative action 'joints' names state 'base', which the embodiment does not have"},
+      {"statistics.json",
+       [](tether::Json& j) {
+         auto& lo = j["relative_arm"]["relative_action"]["eef"]["min"];
+         lo.erase(lo.begin() + 3, lo.end());
+       },
+       "relative_action 'eef' min has 3 steps for a chunk of 6"},
+      {"statistics.json", [](tether::Json& j) { j["relative_arm"]["relative_action"].erase("joints"); },
+       "no relative_action statistics for 'joints'"},
+  };
+  for (const Change& c : changes) {
+    const fs::path dir = tether::testing::scratch_dir() / "gr00t_relative_edit";
+    fs::remove_all(dir);
+    fs::create_directories(dir);
+    for (const auto& f : fs::directory_iterator(source / "checkpoint")) {
+      if (f.path().filename() == c.what) continue;
+      fs::create_symlink(f.path(), dir / f.path().filename());
+    }
+    tether::Json j = tether::read_json_file((source / "checkpoint" / c.what).string());
+    c.edit(j);
+    std::ofstream(dir / c.what) << j.dump(1);
+    const CliRun r = run_gr00t("predict " + dir.string() + obs);
+    if (c.says.empty()) {
+      EXPECT_EQ(r.code, 0) << r.err;
+    } else {
+      EXPECT_EQ(r.code, 2) << c.says;
+      EXPECT_EQ(lines(r.err), 1) << r.err;
+      EXPECT_NE(r.err.find(c.says), std::string::npos) << r.err;
+    }
+  }
 }
 
 // N1.6: the checkpoint names Isaac-GR00T's Eagle directory, put in a hub cache under that id (eagle_hub.h).

@@ -248,3 +248,59 @@ TEST(Gr00tEmbodiments, TwoTagsShareOneLoadAndMatchSeparateLoads) {
   expect_embodiments_share_one_load(fs::path(TETHER_FIXTURES_DIR) / "gr00t_n17" / "cam1_libero" / "checkpoint",
                                     "libero_sim", "new_embodiment");
 }
+
+// Relative actions (tools/oracle/gr00t_relative_oracle.py): a checkpoint with use_relative_action, an EEF group in
+// XYZ_ROT6D with per-step statistics and a NON_EEF group, decoded by lerobot's GrootN17ActionDecodeStep against the
+// request's raw state. The model output, the relative values before re-anchoring and the absolute actions are compared.
+TEST(Gr00tRelative, MatchesLerobotsDecode) {
+  const fs::path dir = fs::path(TETHER_FIXTURES_DIR) / "gr00t_n17_relative";
+  const SafeTensorsFile oracle = SafeTensorsFile::open((dir / "oracle.safetensors").string());
+  use_gr00t_hub();
+  auto policy = policy::Policy::load((dir / "checkpoint").string());
+  const auto& spec = policy->spec();
+  EXPECT_TRUE(spec.relative_actions);
+  policy::Observation o;
+  o.state = oracle.get("input.state").to_f32();
+  o.instruction = oracle.metadata().at("instruction");
+  o.noise = oracle.get("input.noise").to_f32();
+  const Json files = Json::parse(oracle.metadata().at("input_files"));
+  for (auto it = files.begin(); it != files.end(); ++it)
+    o.images[it.key()] = vision::load_image((dir / it.value().get<std::string>()).string());
+  std::vector<float> normalized;
+  policy->set_debug_hook([&](const std::string& n, const Tensor& t) {
+    if (n == "out.actions_normalized") normalized = t.to_f32();
+  });
+  const std::vector<float> got = policy->predict({o}).items.at(0).actions;
+  auto diff = [](const std::vector<float>& a, const std::vector<float>& b) {
+    EXPECT_EQ(a.size(), b.size());
+    double m = 0;
+    for (std::size_t i = 0; i < std::min(a.size(), b.size()); ++i) m = std::max(m, std::fabs(double(a[i]) - double(b[i])));
+    return m;
+  };
+  // The model's normalised rows: upstream's chunk cut to the valid steps and the action groups' columns.
+  const Tensor chunk = oracle.get("out.actions_chunk");
+  const std::vector<float> chunk_values = chunk.to_f32();
+  const int64_t rows = spec.chunk_size, dim = spec.action_dim, width = chunk.shape.back();
+  std::vector<float> want_norm;
+  for (int64_t r = 0; r < rows; ++r)
+    for (int64_t c = 0; c < dim; ++c) want_norm.push_back(chunk_values[std::size_t(r * width + c)]);
+  const std::vector<float> want = oracle.get("out.actions").to_f32();
+  const double dn = diff(normalized, want_norm), da = diff(got, want);
+  std::printf("  [gr00t relative] normalised max |diff| %.3e; absolute actions %.3e (max |action| %.2f)\n", dn, da,
+              max_abs(want));
+  EXPECT_LE(dn, 1e-5 * std::max(1.0, max_abs(want_norm)));
+  EXPECT_LE(da, 1e-5 * std::max(1.0, max_abs(want)));
+  // Before re-anchoring: the relative values alone (the EEF group's first 9 columns, the joints' next 4).
+  std::vector<float> relative = normalized;
+  policy->output_normalizer().unnormalize(spec.action_key, relative.data(), int64_t(relative.size()));
+  std::vector<float> eef, joints;
+  for (int64_t r = 0; r < rows; ++r) {
+    eef.insert(eef.end(), relative.begin() + r * dim, relative.begin() + r * dim + 9);
+    joints.insert(joints.end(), relative.begin() + r * dim + 9, relative.begin() + r * dim + 13);
+  }
+  EXPECT_LE(diff(eef, oracle.get("out.relative.eef").to_f32()), 1e-5);
+  EXPECT_LE(diff(joints, oracle.get("out.relative.joints").to_f32()), 1e-5);
+  // Real-time chunking is off for relative actions, as lerobot turns it off.
+  o.rtc = policy::Observation::Rtc{.prev_actions = std::vector<float>(got.begin(), got.begin() + dim)};
+  EXPECT_THROW(policy->predict({o}), Error);
+}

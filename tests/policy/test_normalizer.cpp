@@ -1,6 +1,7 @@
 // Normaliser: lerobot's processor files read (models/lerobot), its formulas per mode, the degenerate-range guard, and missing stats handled as upstream.
 #include <gtest/gtest.h>
 
+#include <cmath>
 #include <filesystem>
 #include <fstream>
 #include <unistd.h>
@@ -100,4 +101,38 @@ TEST(Normalizer, UnknownModeIsRejected) {
   auto dir = make_checkpoint("badmode", "ZSCORE_PLUS", {});
   std::vector<std::string> warnings;
   EXPECT_THROW(Normalizer(models::lerobot::read_pipeline_normalization(dir.string(), "policy_preprocessor.json", "normalizer_processor", config(), warnings)), Error);
+}
+
+// GR00T's relative action groups made absolute: a NON_EEF group adds the state; an EEF group in xyz+rot6d composes
+// T_state * T_action (lerobot's relative_eef_to_absolute). Rotations about z make the expected poses exact.
+TEST(Normalizer, RelativeGroupsAreMadeAbsoluteAgainstTheState) {
+  models::NormalizationSpec spec;
+  spec.relative = {{models::RelativeAction::Kind::eef_xyz_rot6d, "eef", 0, 0, 9},
+                   {models::RelativeAction::Kind::joint, "joints", 9, 10, 2}};
+  const Normalizer n(spec);
+  const double a = 0.3, b = -0.5;
+  // State: pose at (1, 2, 3) rotated by a about z; a state group in between (x) that no action reads; joints (5, 6).
+  const std::vector<float> state = {1, 2, 3, float(std::cos(a)), float(-std::sin(a)), 0, float(std::sin(a)),
+                                    float(std::cos(a)), 0, 9, 5, 6};
+  // Two rows: the identity (the state's own pose), then a translation (0.5, 0, 0) with a rotation b about z; the
+  // second row's rot6d is scaled by 2 (Gram-Schmidt normalises it).
+  std::vector<float> actions = {0, 0, 0, 1, 0, 0, 0, 1, 0, 0.25f, -0.5f,
+                                0.5f, 0, 0, float(2 * std::cos(b)), float(-2 * std::sin(b)), 0, float(2 * std::sin(b)),
+                                float(2 * std::cos(b)), 0, 1, 1};
+  n.to_absolute(actions.data(), 2, 11, state);
+  for (int k = 0; k < 9; ++k) EXPECT_NEAR(actions[std::size_t(k)], state[std::size_t(k)], 1e-7) << k;
+  EXPECT_FLOAT_EQ(actions[9], 5.25f);
+  EXPECT_FLOAT_EQ(actions[10], 5.5f);
+  const float* r = actions.data() + 11;
+  // Translation: state + R(a) * (0.5, 0, 0); rotation: R(a + b).
+  EXPECT_NEAR(r[0], 1 + 0.5 * std::cos(a), 1e-6);
+  EXPECT_NEAR(r[1], 2 + 0.5 * std::sin(a), 1e-6);
+  EXPECT_NEAR(r[2], 3, 1e-6);
+  const double c = std::cos(a + b), s = std::sin(a + b);
+  const double want[6] = {c, -s, 0, s, c, 0};
+  for (int k = 0; k < 6; ++k) EXPECT_NEAR(r[3 + k], want[k], 1e-6) << k;
+  EXPECT_FLOAT_EQ(r[9], 6);
+  EXPECT_FLOAT_EQ(r[10], 7);
+  EXPECT_TRUE(n.has_relative());
+  EXPECT_FALSE(Normalizer(models::NormalizationSpec{}).has_relative());
 }

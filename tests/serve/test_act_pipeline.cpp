@@ -318,3 +318,31 @@ TEST(ModelHosts, EachEmbodimentRecordsItsOwnTraceChain) {
   }
   EXPECT_EQ(serve::testing::read_trace_lines(dir / "humanoid").size(), 2u);
 }
+
+TEST(ActPipeline, RtcIsRefusedForActionsRelativeToTheState) {
+  ServerOptions o;
+  o.wedges.sampler.rtc = true;
+  Metrics metrics("test", "");
+  ModelHosts hosts({{"", [] {
+                       Engine e = embodiment_engine("arm");
+                       e.spec.relative_actions = true;
+                       return e;
+                     }}},
+                   o.batch, o.wedges, metrics);
+  ASSERT_TRUE(hosts.load());
+  ActPipeline pipeline(o, hosts, metrics);
+  Json body = Json::parse(act_body(1));
+  body["rtc"] = {{"prev_actions", {{1, 2}, {3, 4}}}, {"inference_delay", 1}};
+  RequestContext ctx;
+  ctx.request_id = "req-1";
+  ctx.received = std::chrono::steady_clock::now();
+  net::io_context ioc;
+  const std::string text = body.dump();
+  auto future = net::co_spawn(ioc, pipeline.run(text, ctx), net::use_future);
+  ioc.run();
+  const ActResponse r = future.get();
+  EXPECT_EQ(r.status, 400);
+  EXPECT_EQ(code_of(r), "invalid_field");
+  EXPECT_NE(r.body["error"]["message"].get<std::string>().find("relative to the state"), std::string::npos);
+  hosts.stop();
+}

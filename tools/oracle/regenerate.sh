@@ -35,6 +35,7 @@ echo "== GR00T N1.7 fixtures (the stand-in Qwen3-VL backbone repository's hub ca
 "$here/run.sh" "$here/gr00t_oracle.py" hub --tiny-only
 "$here/run.sh" "$here/gr00t_oracle.py" fixtures
 "$here/run.sh" "$here/gr00t_rtc_oracle.py"  # GR00T N1.7 real-time chunking (reads the cam2_new case)
+"$here/run.sh" "$here/gr00t_relative_oracle.py"  # GR00T N1.7 relative actions (the cam2_new weights and frames)
 echo "== GR00T N1.6 fixtures (tiny raw checkpoint, stand-in Eagle directory, block and end-to-end oracles)"
 "$here/run.sh" "$here/gr00t_n16_oracle.py"
 echo "== demo policy"
