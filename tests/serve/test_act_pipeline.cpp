@@ -55,6 +55,16 @@ std::string act_body(float state0) {
   return j.dump();
 }
 
+// One /act body through the pipeline, as a transport would run it.
+ActResponse run_body(ActPipeline& pipeline, const std::string& body, RequestContext ctx = {}) {
+  if (ctx.request_id.empty()) ctx.request_id = "req-1";
+  ctx.received = std::chrono::steady_clock::now();
+  net::io_context ioc;
+  auto future = net::co_spawn(ioc, pipeline.run(body, ctx), net::use_future);
+  ioc.run();
+  return future.get();
+}
+
 // A pipeline over a host loaded in the constructor (or not, with load = false).
 struct Fixture {
   explicit Fixture(ServerOptions o = {}, bool load = true)
@@ -69,14 +79,7 @@ struct Fixture {
   }
   ~Fixture() { host.stop(); }
 
-  ActResponse run(const std::string& body, RequestContext ctx = {}) {
-    if (ctx.request_id.empty()) ctx.request_id = "req-1";
-    ctx.received = std::chrono::steady_clock::now();
-    net::io_context ioc;
-    auto future = net::co_spawn(ioc, pipeline.run(body, ctx), net::use_future);
-    ioc.run();
-    return future.get();
-  }
+  ActResponse run(const std::string& body, RequestContext ctx = {}) { return run_body(pipeline, body, std::move(ctx)); }
 
   std::shared_ptr<std::atomic<bool>> fail = std::make_shared<std::atomic<bool>>(false);
   ServerOptions opts;
@@ -217,16 +220,7 @@ struct TwoEmbodiments {
   }
   ~TwoEmbodiments() { hosts.stop(); }
 
-  ActResponse run(Json body) {
-    RequestContext ctx;
-    ctx.request_id = "req-1";
-    ctx.received = std::chrono::steady_clock::now();
-    net::io_context ioc;
-    const std::string text = body.dump();
-    auto future = net::co_spawn(ioc, pipeline.run(text, ctx), net::use_future);
-    ioc.run();
-    return future.get();
-  }
+  ActResponse run(const Json& body) { return run_body(pipeline, body.dump()); }
 
   ServerOptions opts;
   Metrics metrics;
@@ -333,14 +327,7 @@ TEST(ActPipeline, RtcIsRefusedForActionsRelativeToTheState) {
   ActPipeline pipeline(o, hosts, metrics);
   Json body = Json::parse(act_body(1));
   body["rtc"] = {{"prev_actions", {{1, 2}, {3, 4}}}, {"inference_delay", 1}};
-  RequestContext ctx;
-  ctx.request_id = "req-1";
-  ctx.received = std::chrono::steady_clock::now();
-  net::io_context ioc;
-  const std::string text = body.dump();
-  auto future = net::co_spawn(ioc, pipeline.run(text, ctx), net::use_future);
-  ioc.run();
-  const ActResponse r = future.get();
+  const ActResponse r = run_body(pipeline, body.dump());
   EXPECT_EQ(r.status, 400);
   EXPECT_EQ(code_of(r), "invalid_field");
   EXPECT_NE(r.body["error"]["message"].get<std::string>().find("relative to the state"), std::string::npos);
