@@ -238,3 +238,30 @@ def test_traces_are_kept_per_embodiment(multi, record_dir):
     out = subprocess.run([str(binary_path()), "traces", "verify", "--dir", str(record_dir / "new_embodiment")],
                          capture_output=True, text=True, timeout=60)
     assert out.returncode == 0, out.stdout + out.stderr
+
+
+def test_a_robot_file_can_be_one_embodiments_own(tmp_path, alone):
+    """`--custom-embodiment-config new_embodiment=FILE`: that robot's guard clamps its actions to the file's limits,
+    the other embodiment is left as a server of it alone answers, and /metrics counts the clamps by embodiment."""
+    limit = 0.05
+    robot = tmp_path / "tight_arm.json"
+    robot.write_text(json.dumps({"name": "tight_arm", "units": "rad", "control_rate_hz": 10, "joints": [
+        {"name": f"j{i}", "min": -limit, "max": limit} for i in range(7)]}))
+    proc = ServeProcess(["--embodiment-tag", "libero_sim,new_embodiment",
+                         "--custom-embodiment-config", f"new_embodiment={robot}",
+                         "--audit-log", str(tmp_path / "audit.jsonl")],
+                        env={"HF_HUB_CACHE": str(HUB)}, checkpoint=CHECKPOINT)
+    try:
+        np.testing.assert_array_equal(http_act(proc.port, "libero_sim", 3), alone["libero_sim"][3])
+        clamped = http_act(proc.port, "new_embodiment", 3)
+        free = alone["new_embodiment"][3]
+        assert np.abs(free).max() > limit, "the limits must bite for this test to mean anything"
+        np.testing.assert_array_equal(clamped, np.clip(free, -limit, limit))
+        metrics = request(proc.port, "GET", "/metrics")[2].decode()
+        assert 'tether_guard_clamped_total{embodiment="new_embodiment"} 1\n' in metrics, metrics
+        assert 'tether_guard_clamped_total{embodiment="libero_sim"}' not in metrics, "no guard without a robot file"
+        assert 'tether_episodes{embodiment="libero_sim"} 1\n' in metrics, metrics
+        audit = [json.loads(line) for line in (tmp_path / "audit.jsonl").read_text().splitlines()]
+        assert audit and all(line["embodiment"] == "new_embodiment" for line in audit), audit[:2]
+    finally:
+        assert proc.stop() == 0, proc.stderr_tail()

@@ -1,5 +1,6 @@
 // `tether serve`: the HTTP action server for one checkpoint directory (API: /act, /health, /ready, /live, /config,
 // /metrics). Prints one "listening on" line to stdout once bound; everything else goes to stderr.
+#include <algorithm>
 #include <cctype>
 #include <cstdio>
 #include <cstdlib>
@@ -71,12 +72,15 @@ void add_serve_flags(CLI::App* sub, ServeFlags& f) {
   // Safety wedges (off unless given; order and semantics in the README).
   auto& w = o.wedges;
   const std::string wedges = "Safety wedges";
-  sub->add_option("--embodiment", f.embodiment, "Embodiment preset: franka, so100, ur5, quadcopter (joint limits, rate)")
+  const std::string per_tag = " (TAG=... for one of several --embodiment-tag robots; repeatable)";
+  sub->add_option("--embodiment", f.embodiment,
+                  "Embodiment preset: franka, so100, ur5, quadcopter (joint limits, rate)" + per_tag)
       ->group(wedges);
-  sub->add_option("--custom-embodiment-config", f.custom_embodiment, "Embodiment JSON file (same format as the presets)")
+  sub->add_option("--custom-embodiment-config", f.custom_embodiment,
+                  "Embodiment JSON file (same format as the presets)" + per_tag)
       ->group(wedges);
   sub->add_option("--safety-config", f.safety_config,
-                  "Joint limits JSON (ros2_control JointLimits fields); overrides the embodiment's per joint")
+                  "Joint limits JSON (ros2_control JointLimits fields); overrides the embodiment's per joint" + per_tag)
       ->group(wedges);
   sub->add_option("--audit-log", w.audit_log,
                   "JSON-lines file every guard clamp is appended to (default: audit.jsonl in --record DIR, else "
@@ -158,18 +162,63 @@ std::string embodiment_preset_file(const std::string& name) {
   return (std::filesystem::path(dir) / (name + ".json")).string();
 }
 
-runtime::WedgeOptions wedge_options(const ServeFlags& f, const std::string& checkpoint_dir) {
+namespace {
+
+// One robot-side flag's value for the embodiment `tag`: its TAG=VALUE entry, else the entry for every embodiment.
+struct RobotValue {
+  std::string value;  // empty: none
+  bool own = false;   // from a TAG=VALUE entry
+};
+
+// An entry is TAG=VALUE when the text before its first '=' is a served tag; anything else is a value for every
+// embodiment. A tag or the shared value given twice is an error, and so is an apparent TAG= that names neither a
+// served tag nor a file (a mistyped tag).
+RobotValue robot_value(const std::vector<std::string>& entries, const std::vector<std::string>& tags,
+                       const std::string& tag, const char* flag, bool is_file) {
+  RobotValue shared, own;
+  std::vector<std::string> seen;
+  for (const std::string& entry : entries) {
+    const std::size_t eq = entry.find('=');
+    const std::string prefix = eq == std::string::npos ? "" : entry.substr(0, eq);
+    const bool tagged = !prefix.empty() && std::find(tags.begin(), tags.end(), prefix) != tags.end();
+    if (!tagged && !prefix.empty() && !tags.empty() && !(is_file && std::filesystem::exists(entry))) {
+      std::string served;
+      for (const auto& t : tags) served += (served.empty() ? "" : ", ") + t;
+      throw Error(ErrorCode::invalid_argument, std::string(flag) + " " + entry + ": '" + prefix +
+                                                   "' is not an embodiment served (--embodiment-tag: " + served + ")");
+    }
+    const std::string scope = tagged ? prefix : "";
+    if (std::find(seen.begin(), seen.end(), scope) != seen.end())
+      throw Error(ErrorCode::invalid_argument, std::string(flag) + " is given twice for " +
+                                                   (tagged ? "embodiment '" + scope + "'" : std::string("every embodiment")));
+    seen.push_back(scope);
+    if (!tagged) shared = {entry, false};
+    else if (scope == tag) own = {entry.substr(eq + 1), true};
+  }
+  return own.value.empty() ? shared : own;
+}
+
+}  // namespace
+
+runtime::WedgeOptions wedge_options(const ServeFlags& f, const std::string& checkpoint_dir, const std::string& tag) {
   runtime::WedgeOptions w = f.options.wedges;
-  if (!f.embodiment.empty() && !f.custom_embodiment.empty())
-    throw Error(ErrorCode::invalid_argument, "give --embodiment or --custom-embodiment-config, not both");
-  if (!f.embodiment.empty()) w.embodiment = policy::load_embodiment_preset(f.embodiment, data_file("embodiments"));
-  if (!f.custom_embodiment.empty()) w.embodiment = policy::load_embodiment_file(f.custom_embodiment);
+  const auto& tags = f.embodiment_tags;
+  const RobotValue preset = robot_value(f.embodiment, tags, tag, "--embodiment", false);
+  const RobotValue custom = robot_value(f.custom_embodiment, tags, tag, "--custom-embodiment-config", true);
+  const RobotValue safety = robot_value(f.safety_config, tags, tag, "--safety-config", true);
+  // The embodiment's own entry wins over a shared one of the other flag; two at one level are ambiguous.
+  if (!preset.value.empty() && !custom.value.empty() && preset.own == custom.own)
+    throw Error(ErrorCode::invalid_argument, "give --embodiment or --custom-embodiment-config, not both" +
+                                                 (tag.empty() ? std::string() : " (embodiment '" + tag + "')"));
+  const bool use_custom = !custom.value.empty() && (preset.value.empty() || custom.own);
+  if (use_custom) w.embodiment = policy::load_embodiment_file(custom.value);
+  else if (!preset.value.empty()) w.embodiment = policy::load_embodiment_preset(preset.value, data_file("embodiments"));
   const auto carried = std::filesystem::path(checkpoint_dir) / kExportEmbodimentFile;
   if (!w.embodiment && std::filesystem::is_regular_file(carried)) {
     w.embodiment = policy::load_embodiment_file(carried.string());
     std::fprintf(stderr, "tether serve: embodiment '%s' from %s\n", w.embodiment->name.c_str(), carried.c_str());
   }
-  if (!f.safety_config.empty()) w.safety = policy::load_safety_config(f.safety_config);
+  if (!safety.value.empty()) w.safety = policy::load_safety_config(safety.value);
   // --adaptive-threshold on its own also turns the wedge on.
   const bool adaptive = f.adaptive_steps || f.adaptive_threshold >= 0;
   w.sampler.adaptive_threshold = !adaptive ? 0.0f : f.adaptive_threshold >= 0 ? f.adaptive_threshold : kDefaultAdaptiveThreshold;
@@ -210,7 +259,9 @@ int run_server(const std::string& checkpoint_dir, const ServeFlags& flags) {
   std::vector<serve::HostLoader> hosts;
   for (const std::string& tag : flags.embodiment_tags.empty() ? std::vector<std::string>{""} : flags.embodiment_tags) {
     const models::LoadOptions load = load_options(flags.precision, tag);
-    hosts.push_back({tag, [checkpoint_dir, load] { return serve::load_policy_engine(checkpoint_dir, load); }});
+    // Each robot's own embodiment and safety files (TAG=... entries), else the shared ones.
+    hosts.push_back({tag, [checkpoint_dir, load] { return serve::load_policy_engine(checkpoint_dir, load); },
+                     wedge_options(flags, checkpoint_dir, tag)});
   }
   serve::Server server(options, std::move(hosts));
   const uint16_t port = server.start();

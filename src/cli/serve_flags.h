@@ -20,9 +20,13 @@ struct ServeFlags {
   // GR00T: the embodiments served (--embodiment-tag, repeatable or comma-separated); the first is the default, a
   // request names another by its tag. Empty: the checkpoint's only one.
   std::vector<std::string> embodiment_tags;
-  // Wedge flags that name files or choices; run_server turns them into options.wedges before the socket is bound, so
-  // a bad file is an error at start-up.
-  std::string embodiment, custom_embodiment, safety_config, fallback_api_key_file, rtc_schedule = "linear";
+  // Robot-side wedge flags (--embodiment, --custom-embodiment-config, --safety-config): each entry is a value for
+  // every embodiment served, or TAG=VALUE for the one embodiment TAG (a GR00T server driving several robots). An
+  // embodiment's own entry wins over the shared one.
+  std::vector<std::string> embodiment, custom_embodiment, safety_config;
+  // Other wedge flags that name files or choices. run_server turns all of them into wedge options before the socket
+  // is bound, so a bad file is an error at start-up.
+  std::string fallback_api_key_file, rtc_schedule = "linear";
   bool adaptive_steps = false;
   float adaptive_threshold = -1;  // < 0: not given (kDefaultAdaptiveThreshold with --adaptive-steps)
   std::string record_dir, record_images = "hash", record_fsync = "interval";
@@ -36,9 +40,10 @@ void add_openpi_flags(CLI::App* sub, serve::ServerOptions& options);
 inline constexpr const char* kExportEmbodimentFile = "embodiment.json";
 // Path of the preset models/embodiments/<name>.json after validating it (not_found listing the presets otherwise).
 std::string embodiment_preset_file(const std::string& name);
-// Loads the embodiment / safety / key files the wedge flags name (or the checkpoint's own embodiment.json); throws
-// tether::Error naming the flag or field.
-runtime::WedgeOptions wedge_options(const ServeFlags& flags, const std::string& checkpoint_dir);
+// Loads the embodiment / safety / key files the wedge flags name for the embodiment `tag` (empty: the only one
+// served), or the checkpoint's own embodiment.json; throws tether::Error naming the flag or field.
+runtime::WedgeOptions wedge_options(const ServeFlags& flags, const std::string& checkpoint_dir,
+                                    const std::string& tag = "");
 // Resolves the API key (file, else TETHER_API_KEY), binds, prints the listening line, serves until SIGTERM/SIGINT.
 int run_server(const std::string& checkpoint_dir, const ServeFlags& flags);
 

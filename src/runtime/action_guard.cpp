@@ -118,14 +118,15 @@ AuditLog::~AuditLog() {
 }
 
 void AuditLog::append(const std::string& request_id, const std::string& episode_id,
-                      const std::vector<GuardViolation>& violations) {
+                      const std::vector<GuardViolation>& violations, const std::string& embodiment) {
   if (violations.empty()) return;
   const std::string time = utc_now_iso8601();
   std::string lines;
   for (const auto& v : violations) {
-    const Json line = {{"time", time},     {"request_id", request_id}, {"episode_id", episode_id},
-                       {"step", v.step},   {"joint", v.joint},         {"limit", v.limit},
-                       {"requested", v.requested}, {"applied", v.applied}};
+    Json line = {{"time", time},     {"request_id", request_id}, {"episode_id", episode_id},
+                 {"step", v.step},   {"joint", v.joint},         {"limit", v.limit},
+                 {"requested", v.requested}, {"applied", v.applied}};
+    if (!embodiment.empty()) line["embodiment"] = embodiment;
     // Ids come from clients: invalid UTF-8 is replaced rather than thrown on.
     lines += line.dump(-1, ' ', false, Json::error_handler_t::replace);
     lines += '\n';

@@ -73,8 +73,10 @@ class AuditLog {
 
   // Never throws on I/O errors: a failed or short write is counted in write_errors(), and the next append starts on
   // a fresh line so one torn line cannot corrupt the following ones.
+  // `embodiment`: the GR00T embodiment tag of the model that answered (empty: none), so that one log shared by
+  // several robots tells them apart.
   void append(const std::string& request_id, const std::string& episode_id,
-              const std::vector<GuardViolation>& violations);
+              const std::vector<GuardViolation>& violations, const std::string& embodiment = "");
   int64_t write_errors() const { return write_errors_.load(); }
   const std::string& path() const { return path_; }
 

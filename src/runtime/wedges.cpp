@@ -44,6 +44,7 @@ int64_t embodiment_action_dim(const policy::Embodiment& e, const models::ModelSp
 void Wedges::bind_model(const models::ModelSpec& spec, bool actions_normalized) {
   rows_ = spec.chunk_size;
   dim_ = model_dim_ = spec.action_dim;
+  model_embodiment_ = spec.embodiment;
   std::vector<policy::JointLimits> limits;
   if (opts_.embodiment) {
     const auto& e = *opts_.embodiment;
@@ -151,7 +152,7 @@ void Wedges::guard(Episode& ep, std::vector<float>& actions, int64_t rows, const
   const float* fallback = int64_t(state.size()) == dim_ ? state.data() : nullptr;
   report.guard = guard_->apply(actions.data(), rows, dim_, previous, before_previous, fallback);
   s.last_sent = {actions, rows, dim_, now};
-  if (!report.guard.violations.empty()) audit_->append(request_id, episode_id, report.guard.violations);
+  if (!report.guard.violations.empty()) audit_->append(request_id, episode_id, report.guard.violations, model_embodiment_);
 }
 
 Json Wedges::response_fields(const WedgeReport& r) const {

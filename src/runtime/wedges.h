@@ -138,6 +138,7 @@ class Wedges {
   int64_t rows_ = 0, dim_ = 0, model_dim_ = 0;  // dim_: after the embodiment map; model_dim_: what the model outputs
   bool map_to_range_ = false;
   std::vector<std::string> joints_;
+  std::string model_embodiment_;  // the bound model's embodiment tag, named in audit lines
   std::optional<ActionGuard> guard_;
   std::unique_ptr<AuditLog> audit_;
   CircuitBreaker breaker_;

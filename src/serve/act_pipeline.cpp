@@ -132,18 +132,17 @@ net::awaitable<ActResponse> ActPipeline::run(std::string_view body, const Reques
 net::awaitable<ActResponse> ActPipeline::traced(const ActInput& input, const RequestContext& ctx, ModelHost& host) {
   ActTrace trace;
   trace.transport = ctx.transport;  // also on a request whose decoding fails
-  auto& wedges = host.wedges();
   try {
     ActResponse res = co_await answer(input, ctx, host, trace);
-    record_trace(wedges, metrics_, host.engine(), trace, ctx.request_id, 200, "", "");
+    record_trace(host, metrics_, trace, ctx.request_id, 200, "", "");
     co_return res;
   } catch (const HttpError& e) {
     trace.latency["total"] = ms_since(ctx.received);
-    record_trace(wedges, metrics_, host.engine(), trace, ctx.request_id, e.status(), e.code(), e.what());
+    record_trace(host, metrics_, trace, ctx.request_id, e.status(), e.code(), e.what());
     throw;
   } catch (const std::exception& e) {
     trace.latency["total"] = ms_since(ctx.received);
-    record_trace(wedges, metrics_, host.engine(), trace, ctx.request_id, 500, "internal_error",
+    record_trace(host, metrics_, trace, ctx.request_id, 500, "internal_error",
                  std::string("internal error: ") + e.what());
     throw;
   }
@@ -202,7 +201,7 @@ net::awaitable<void> ActPipeline::admit(Act& a, const RequestContext& ctx) {
   const auto admission = breaker.admit();
   a.probe = admission == runtime::CircuitBreaker::Admission::probe;
   if (admission != runtime::CircuitBreaker::Admission::reject) co_return;
-  count_wedge_event(metrics_, WedgeEvent::circuit_rejected);
+  count_wedge_event(metrics_, WedgeEvent::circuit_rejected, a.host->metric_labels());
   if (a.may_forward) co_await call_fallback(a, ctx.request_id);
   if (!a.actions) {
     const int retry = breaker.retry_after_s();
@@ -283,7 +282,7 @@ net::awaitable<void> ActPipeline::recover(Act& a, Inference& inf, const RequestC
   auto& wedges = a.host->wedges();
   const bool missed = *inf.failure == BatchError::Kind::deadline_exceeded && inf.has_deadline;
   a.report.deadline_exceeded = missed;
-  if (missed) count_wedge_event(metrics_, WedgeEvent::deadline_exceeded);
+  if (missed) count_wedge_event(metrics_, WedgeEvent::deadline_exceeded, a.host->metric_labels());
   if (!missed) a.report.inference_error = inf.failure_message;
   // 4. Cloud fallback, 5. last good chunk.
   if (a.may_forward) co_await call_fallback(a, ctx.request_id);
@@ -319,7 +318,7 @@ ActResponse ActPipeline::respond(Act& a, const RequestContext& ctx, ActTrace& tr
   const Engine& engine = a.host->engine();
   // 7. Guard: last, whatever produced the actions.
   wedges.guard(*a.ep, *a.actions, a.rows, a.state, ctx.request_id, trace.episode_id, a.report);
-  count_wedge_report(metrics_, a.report);
+  count_wedge_report(metrics_, a.report, a.host->metric_labels());
 
   const int64_t dim = wedges.action_dim();  // the model's action_dim, or the embodiment's joints it was cut to
   const auto& actions = *a.actions;
@@ -425,14 +424,14 @@ net::awaitable<void> ActPipeline::call_fallback(Act& a, const std::string& reque
   runtime::FallbackReply reply = co_await std::move(perform);
   if (!reply.actions) {
     a.report.fallback_error = std::move(reply.error);
-    count_wedge_event(metrics_, WedgeEvent::fallback_failure);
+    count_wedge_event(metrics_, WedgeEvent::fallback_failure, a.host->metric_labels());
     co_return;
   }
   a.actions = std::move(reply.actions);
   a.rows = reply.rows;
   a.report.fallback_used = true;
   a.report.source = runtime::ActionSource::fallback;
-  count_wedge_event(metrics_, WedgeEvent::fallback_success);
+  count_wedge_event(metrics_, WedgeEvent::fallback_success, a.host->metric_labels());
 }
 
 }  // namespace tether::serve

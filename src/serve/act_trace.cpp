@@ -19,10 +19,11 @@ Json trace_inputs(const policy::Observation& obs, bool images_full) {
   return {{"state", obs.state}, {"images", std::move(images)}, {"seed", obs.seed}};
 }
 
-void record_trace(runtime::Wedges& wedges, Metrics& metrics, const Engine& engine, const ActTrace& t,
-                  const std::string& request_id, int status, const std::string& code, const std::string& message) {
-  runtime::TraceRecorder* rec = wedges.recorder();
+void record_trace(ModelHost& host, Metrics& metrics, const ActTrace& t, const std::string& request_id, int status,
+                  const std::string& code, const std::string& message) {
+  runtime::TraceRecorder* rec = host.wedges().recorder();
   if (!rec) return;
+  const Engine& engine = host.engine();
   Json line = {{"request_id", request_id},
                {"episode_id", t.has_episode ? Json(t.episode_id) : Json(nullptr)},
                {"task", t.task},
@@ -37,7 +38,7 @@ void record_trace(runtime::Wedges& wedges, Metrics& metrics, const Engine& engin
                {"actions", t.actions.is_null() ? Json(nullptr) : t.actions},
                {"latency_ms", t.latency},
                {"wedges", t.wedges}};
-  if (!rec->append(std::move(line))) count_wedge_event(metrics, WedgeEvent::trace_write_error);
+  if (!rec->append(std::move(line))) count_wedge_event(metrics, WedgeEvent::trace_write_error, host.metric_labels());
 }
 
 }  // namespace tether::serve

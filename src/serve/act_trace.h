@@ -9,6 +9,7 @@
 #include "runtime/wedges.h"
 #include "serve/engine.h"
 #include "serve/metrics.h"
+#include "serve/model_host.h"
 
 namespace tether::serve {
 
@@ -23,9 +24,9 @@ struct ActTrace {
 // also in the raw-image form /act accepts, so a recorded request can be replayed as it was.
 Json trace_inputs(const policy::Observation& obs, bool images_full);
 
-// Appends the line when --record is on (`wedges.recorder()`); a failed write is counted, never thrown.
+// Appends the line to the host's recorder when --record is on; a failed write is counted, never thrown.
 // `status`: the response's; `code`/`message`: the error's (empty on success).
-void record_trace(runtime::Wedges& wedges, Metrics& metrics, const Engine& engine, const ActTrace& trace,
+void record_trace(ModelHost& host, Metrics& metrics, const ActTrace& trace,
                   const std::string& request_id, int status, const std::string& code, const std::string& message);
 
 }  // namespace tether::serve

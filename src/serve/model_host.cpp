@@ -35,9 +35,10 @@ const char* health_state_name(HealthState s) {
 }
 
 ModelHost::ModelHost(EngineLoader loader, runtime::BatcherOptions batch, runtime::WedgeOptions wedge_options,
-                     Metrics& metrics, std::string embodiment)
+                     Metrics& metrics, std::string embodiment, std::string metric_labels)
     : loader_(std::move(loader)),
       embodiment_(std::move(embodiment)),
+      metric_labels_(std::move(metric_labels)),
       batch_options_(batch),
       metrics_(metrics),
       wedges_(std::move(wedge_options)) {}
@@ -62,7 +63,7 @@ bool ModelHost::load() {
         runtime::with_injected_faults(e->predict, w.inject_latency_ms, w.inject_failure_file), batch_options_);
     metrics_.set_gemm(e->gemm);
     metrics_.declare_stages(e->spec.stages);
-    register_wedge_metrics(metrics_, wedges_);
+    register_wedge_metrics(metrics_, wedges_, metric_labels_);
     engine_ = std::move(e);
     batcher_ = std::move(b);
     state_.store(HealthState::warming, std::memory_order_release);
@@ -152,8 +153,10 @@ ModelHosts::ModelHosts(std::vector<HostLoader> loaders, runtime::BatcherOptions 
     for (const auto& h : hosts_)
       if (h->embodiment() == l.embodiment)
         throw Error(ErrorCode::invalid_argument, "embodiment '" + l.embodiment + "' is named twice");
-    hosts_.push_back(std::make_unique<ModelHost>(std::move(l.load), batch, host_wedges(wedges, l.embodiment, several),
-                                                 metrics, l.embodiment));
+    // Each host's wedge counters and gauges are series of their own, by embodiment.
+    std::string labels = several ? "embodiment=\"" + escape_label(l.embodiment) + "\"" : "";
+    hosts_.push_back(std::make_unique<ModelHost>(std::move(l.load), batch, host_wedges(l.wedges ? *l.wedges : wedges, l.embodiment, several),
+                                                 metrics, l.embodiment, std::move(labels)));
   }
 }
 

@@ -6,6 +6,7 @@
 #include <exception>
 #include <functional>
 #include <memory>
+#include <optional>
 
 #include "core/json_util.h"
 #include "runtime/batcher.h"
@@ -27,8 +28,9 @@ class ModelHost {
   // itself is loaded by load().
   // `embodiment`: the GR00T embodiment tag this host was asked to serve (empty: the checkpoint's only one, or a model
   // without tags).
+  // `metric_labels`: what tells this host's wedge metrics apart from other hosts' (see ModelHosts).
   ModelHost(EngineLoader loader, runtime::BatcherOptions batch, runtime::WedgeOptions wedge_options, Metrics& metrics,
-            std::string embodiment = "");
+            std::string embodiment = "", std::string metric_labels = "");
   ~ModelHost();
   ModelHost(const ModelHost&) = delete;
   ModelHost& operator=(const ModelHost&) = delete;
@@ -59,10 +61,14 @@ class ModelHost {
   // The tag requests name this host by: the one asked for, else (once loaded) the model's own; empty for a model
   // without embodiment tags.
   std::string embodiment() const;
+  // Labels (without braces) in front of this host's wedge metric series: `embodiment="TAG"` when the server serves
+  // several embodiments, empty otherwise.
+  const std::string& metric_labels() const { return metric_labels_; }
 
  private:
   EngineLoader loader_;
   std::string embodiment_;
+  std::string metric_labels_;
   runtime::BatcherOptions batch_options_;
   Metrics& metrics_;
   runtime::Wedges wedges_;
@@ -81,6 +87,8 @@ class ModelHost {
 struct HostLoader {
   std::string embodiment;  // empty: the default (a single host)
   EngineLoader load;
+  // This embodiment's own wedge options (its robot's embodiment and safety files); none: the server's.
+  std::optional<runtime::WedgeOptions> wedges = std::nullopt;
 };
 
 class ModelHosts {

@@ -111,12 +111,14 @@ boost::asio::awaitable<HttpResponse> Router::route(const HttpRequest& req, const
   }
   if (path == "/metrics") {
     require_method(is_get, "GET");
-    // Gauges of the default embodiment's wedges; the queue depth and readiness of them all.
+    // Each embodiment's wedge gauges (labelled by embodiment when there are several); the queue depth and
+    // readiness of them all.
     int depth = 0;
-    for (std::size_t i = 0; i < hosts_.size(); ++i)
+    for (std::size_t i = 0; i < hosts_.size(); ++i) {
+      refresh_wedge_gauges(metrics_, hosts_[i].wedges(), hosts_[i].metric_labels());
       if (hosts_[i].loaded()) depth += hosts_[i].batcher().queue_depth();
+    }
     metrics_.set_queue_depth(depth);
-    refresh_wedge_gauges(metrics_, hosts_.primary().wedges());
     metrics_.set_model_ready(hosts_.health() == HealthState::ready);
     co_return make_response(req, http::status::ok, metrics_.render(), request_id,
                             "text/plain; version=0.0.4; charset=utf-8");

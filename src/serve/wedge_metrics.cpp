@@ -17,6 +17,12 @@ constexpr const char* kFallbackHelp = "Requests forwarded to the cloud fallback,
 
 bool has_fallback(const Wedges& w) { return !w.options().cloud_fallback.empty(); }
 
+std::string join_labels(const std::string& host, const std::string& own) {
+  if (host.empty()) return own;
+  if (own.empty()) return host;
+  return host + "," + own;
+}
+
 }  // namespace
 
 const std::vector<WedgeCounter>& wedge_counters() {
@@ -100,29 +106,30 @@ const std::vector<WedgeGauge>& wedge_gauges() {
   return table;
 }
 
-void register_wedge_metrics(Metrics& metrics, const Wedges& wedges) {
+void register_wedge_metrics(Metrics& metrics, const Wedges& wedges, const std::string& host_labels) {
   for (const auto& c : wedge_counters())
-    if (c.shown_at_zero && c.shown_at_zero(wedges)) metrics.add_counter(c.name, c.help, 0, c.labels);
+    if (c.shown_at_zero && c.shown_at_zero(wedges))
+      metrics.add_counter(c.name, c.help, 0, join_labels(host_labels, c.labels));
 }
 
-void count_wedge_report(Metrics& metrics, const WedgeReport& report) {
+void count_wedge_report(Metrics& metrics, const WedgeReport& report, const std::string& host_labels) {
   Out samples;
   for (const auto& c : wedge_counters()) {
     if (!c.from_report) continue;
     samples.clear();
     c.from_report(report, samples);
-    for (const auto& s : samples) metrics.add_counter(c.name, c.help, s.value, s.labels);
+    for (const auto& s : samples) metrics.add_counter(c.name, c.help, s.value, join_labels(host_labels, s.labels));
   }
 }
 
-void count_wedge_event(Metrics& metrics, WedgeEvent event) {
+void count_wedge_event(Metrics& metrics, WedgeEvent event, const std::string& host_labels) {
   for (const auto& c : wedge_counters())
-    if (c.event == event) metrics.add_counter(c.name, c.help, 1, c.labels);
+    if (c.event == event) metrics.add_counter(c.name, c.help, 1, join_labels(host_labels, c.labels));
 }
 
-void refresh_wedge_gauges(Metrics& metrics, Wedges& wedges) {
+void refresh_wedge_gauges(Metrics& metrics, Wedges& wedges, const std::string& host_labels) {
   for (const auto& g : wedge_gauges())
-    if (const auto v = g.read(wedges)) metrics.set_gauge(g.name, g.help, *v);
+    if (const auto v = g.read(wedges)) metrics.set_gauge(g.name, g.help, *v, host_labels);
 }
 
 }  // namespace tether::serve

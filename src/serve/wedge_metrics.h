@@ -44,12 +44,14 @@ struct WedgeGauge {
 const std::vector<WedgeCounter>& wedge_counters();
 const std::vector<WedgeGauge>& wedge_gauges();
 
+// `host_labels` (without braces) goes in front of every series' own labels: `embodiment="TAG"` when a server serves
+// several embodiments, each with its own wedges; empty for a single one.
 // Once the model is bound: every counter shown at zero for these wedges.
-void register_wedge_metrics(Metrics& metrics, const runtime::Wedges& wedges);
+void register_wedge_metrics(Metrics& metrics, const runtime::Wedges& wedges, const std::string& host_labels = "");
 // After a request's actions are final: every counter its report feeds.
-void count_wedge_report(Metrics& metrics, const runtime::WedgeReport& report);
-void count_wedge_event(Metrics& metrics, WedgeEvent event);
+void count_wedge_report(Metrics& metrics, const runtime::WedgeReport& report, const std::string& host_labels = "");
+void count_wedge_event(Metrics& metrics, WedgeEvent event, const std::string& host_labels = "");
 // At scrape time.
-void refresh_wedge_gauges(Metrics& metrics, runtime::Wedges& wedges);
+void refresh_wedge_gauges(Metrics& metrics, runtime::Wedges& wedges, const std::string& host_labels = "");
 
 }  // namespace tether::serve

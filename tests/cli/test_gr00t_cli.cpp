@@ -170,6 +170,20 @@ TEST(Gr00tCli, ServingSeveralEmbodimentsRefusesAnUnknownOrRepeatedTag) {
   r = run_gr00t("go --model gr00t-n1.7 --port 0 --embodiment-tag libero_sim,new_embodiment");
   EXPECT_EQ(r.code, 2);
   EXPECT_NE(r.err.find("go serves one --embodiment-tag"), std::string::npos) << r.err;
+  // A robot-side file for one embodiment names a served tag, once.
+  const std::string two = "serve " + ckpt + " --port 0 --embodiment-tag libero_sim,new_embodiment";
+  r = run_gr00t(two + " --embodiment unitree_g1=franka");
+  EXPECT_EQ(r.code, 2);
+  EXPECT_NE(r.err.find("error: --embodiment unitree_g1=franka: 'unitree_g1' is not an embodiment served "
+                       "(--embodiment-tag: libero_sim, new_embodiment)"),
+            std::string::npos)
+      << r.err;
+  r = run_gr00t(two + " --embodiment new_embodiment=franka --embodiment new_embodiment=ur5");
+  EXPECT_EQ(r.code, 2);
+  EXPECT_NE(r.err.find("error: --embodiment is given twice for embodiment 'new_embodiment'"), std::string::npos) << r.err;
+  r = run_gr00t(two + " --embodiment franka --custom-embodiment-config " + (kCase / "checkpoint" / "config.json").string());
+  EXPECT_EQ(r.code, 2);
+  EXPECT_NE(r.err.find("error: give --embodiment or --custom-embodiment-config, not both"), std::string::npos) << r.err;
 }
 
 // A relative-action checkpoint (tests/fixtures/gr00t_n17_relative) with one sidecar changed: predicts, or fails at

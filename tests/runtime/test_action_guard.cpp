@@ -268,9 +268,12 @@ TEST(AuditLog, WritesOneParseableLinePerViolation) {
   EXPECT_TRUE(Json::parse(lines[1]).at("requested").is_null());
   EXPECT_EQ(log.write_errors(), 0);
 
-  // A second log on the same file appends after the first one's lines.
-  AuditLog(path.string()).append("req-3", "ep-8", {v[0]});
-  EXPECT_EQ(read_lines(path).size(), 3u);
+  EXPECT_FALSE(Json::parse(lines[0]).contains("embodiment")) << "a model without embodiment tags";
+
+  // A second log on the same file appends after the first one's lines; a GR00T robot's lines name its embodiment.
+  AuditLog(path.string()).append("req-3", "ep-8", {v[0]}, "unitree_g1");
+  ASSERT_EQ(read_lines(path).size(), 3u);
+  EXPECT_EQ(Json::parse(read_lines(path)[2]).at("embodiment"), "unitree_g1");
 }
 
 TEST(AuditLog, ConcurrentAppendsProduceWholeLines) {

@@ -34,6 +34,7 @@ struct FakeEngine {
   std::mutex mu;
   std::condition_variable cv;
   bool release_load = true;
+  std::string embodiment;  // the GR00T-style tag the model serves (empty: none)
 
   static float expected(float state0, uint64_t seed, int row, int col) {
     return state0 + float(seed % 97) + float(row * 10 + col);
@@ -46,6 +47,7 @@ struct FakeEngine {
     }
     Engine e;
     e.spec.family = "fake";
+    e.spec.embodiment = embodiment;
     e.spec.cameras = {"observation.images.front"};
     e.spec.camera_prefix = "observation.images.";
     e.spec.stages = {"preprocess", "vision", "prefix", "denoise"};
@@ -77,9 +79,12 @@ struct FakeEngine {
 // A server on a free port, run on its own thread; stopped (and joined) at the end of the test.
 class TestServer {
  public:
-  TestServer(FakeEngine& engine, ServerOptions options = {}) {
+  TestServer(FakeEngine& engine, ServerOptions options = {})
+      : TestServer(std::move(options), {{"", [&engine] { return engine.make(); }}}) {}
+  // One host per embodiment tag.
+  TestServer(ServerOptions options, std::vector<HostLoader> hosts) {
     options.port = 0;
-    server_ = std::make_unique<Server>(options, [&engine] { return engine.make(); });
+    server_ = std::make_unique<Server>(options, std::move(hosts));
     port_ = server_->start();
     thread_ = std::thread([this] {
       try {
@@ -380,6 +385,30 @@ TEST(Server, MetricsCountRequestsAndStages) {
                            "tether_batch_size_count 1",  // the warm-up is not a served request
                            "tether_model_ready 1", "tether_queue_depth 0", "tether_build_info{version="})
     EXPECT_NE(m.body.find(line), std::string::npos) << line << "\n" << m.body;
+}
+
+TEST(Server, EachEmbodimentHasItsOwnWedgeMetrics) {
+  FakeEngine arm, humanoid;
+  arm.embodiment = "arm";
+  humanoid.embodiment = "humanoid";
+  ServerOptions o;
+  o.wedges.similarity_threshold = 0.5;
+  o.wedges.max_similar_skips = 3;
+  TestServer srv(o, {{"arm", [&arm] { return arm.make(); }}, {"humanoid", [&humanoid] { return humanoid.make(); }}});
+  srv.wait_ready();
+  Json b = Json::parse(body(1, 1));
+  b["embodiment_tag"] = "arm";
+  for (int i = 0; i < 2; ++i) {  // the second time, the same observation is answered from the cache
+    const HttpReply r = http_post(srv.port(), "/act", b.dump());
+    ASSERT_EQ(r.status, 200) << r.body;
+  }
+  const std::string m = http_get(srv.port(), "/metrics").body;
+  for (const char* line : {"tether_action_skip_total{embodiment=\"arm\"} 1", "tether_action_skip_total{embodiment=\"humanoid\"} 0",
+                           "tether_episodes{embodiment=\"arm\"} 1", "tether_episodes{embodiment=\"humanoid\"} 0",
+                           "tether_model_ready 1"})
+    EXPECT_NE(m.find(std::string(line) + "\n"), std::string::npos) << line << "\n" << m;
+  EXPECT_EQ(m.find("\ntether_action_skip_total "), std::string::npos) << "no series without its embodiment\n" << m;
+  EXPECT_EQ(arm.calls.load(), 2) << "warm-up and the first request";
 }
 
 TEST(Server, StopFinishesInFlightRequests) {

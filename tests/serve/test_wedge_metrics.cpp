@@ -95,3 +95,25 @@ TEST(WedgeMetrics, EventsAndGauges) {
   EXPECT_EQ(r.find("outcome=\"success\""), std::string::npos);
   EXPECT_EQ(r.find("tether_trace_lines_total"), std::string::npos) << "no recorder, no trace gauges";
 }
+
+TEST(WedgeMetrics, AHostsLabelsComeFirstInEverySeries) {
+  Metrics m("v", "");
+  const std::string arm = "embodiment=\"arm\"";
+  runtime::WedgeReport report;
+  report.guard.clamped = true;
+  report.guard.violations.push_back({0, "j1", "velocity", 3, 1});
+  count_wedge_report(m, report, arm);
+  count_wedge_event(m, WedgeEvent::fallback_success, arm);
+  runtime::WedgeOptions o;
+  o.max_consecutive_crashes = 2;
+  runtime::Wedges w(o);
+  refresh_wedge_gauges(m, w, arm);
+  register_wedge_metrics(m, w, "embodiment=\"humanoid\"");
+  const std::string r = m.render();
+  for (const char* line : {"tether_guard_clamped_total{embodiment=\"arm\"} 1",
+                           "tether_guard_violations_total{embodiment=\"arm\",joint=\"j1\",limit=\"velocity\"} 1",
+                           "tether_fallback_total{embodiment=\"arm\",outcome=\"success\"} 1",
+                           "tether_circuit_open{embodiment=\"arm\"} 0",
+                           "tether_circuit_rejected_total{embodiment=\"humanoid\"} 0"})
+    EXPECT_TRUE(shows(r, line)) << line << "\n" << r;
+}
