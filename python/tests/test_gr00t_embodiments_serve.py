@@ -73,12 +73,15 @@ def record_dir(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def multi(tmp_path_factory, record_dir):
-    layout = tmp_path_factory.mktemp("openpi") / "layout.json"
-    # openpi's key layout is the robot's: this one is new_embodiment's (a connection to libero_sim would need its own).
-    layout.write_text(json.dumps({"images": {"cams/front": "front", "cams/wrist": "wrist"}, "state": ["state"],
-                                  "prompt": "task"}))
+    layouts = tmp_path_factory.mktemp("openpi")
+    # openpi's key layout is the robot's client's: each embodiment gets its own (--openpi-layout TAG=FILE).
+    (layouts / "new.json").write_text(json.dumps({"images": {"cams/front": "front", "cams/wrist": "wrist"},
+                                                  "state": ["state"], "prompt": "task"}))
+    (layouts / "libero.json").write_text(json.dumps({"images": {"agentview": "image"}, "state": ["robot_state"],
+                                                     "prompt": "instruction"}))
     proc = ServeProcess(["--embodiment-tag", "libero_sim,new_embodiment", "--gr00t-port", "0", "--zmq-port", "0",
-                         "--openpi-port", "0", "--openpi-layout", str(layout), "--model-name", "gr00t",
+                         "--openpi-port", "0", "--openpi-layout", f"new_embodiment={layouts / 'new.json'}",
+                         "--openpi-layout", f"libero_sim={layouts / 'libero.json'}", "--model-name", "gr00t",
                          "--record", str(record_dir)],
                         env={"HF_HUB_CACHE": str(HUB)}, checkpoint=CHECKPOINT)
     try:
@@ -220,6 +223,12 @@ def test_every_transport_routes_by_tag(multi, alone):
     obs = {f"cams/{cam}": img for cam, img in frames(tag).items()}
     obs.update({"state": np.asarray(EMBODIMENTS[tag]["state"]), "task": TASK, "seed": seed})
     np.testing.assert_array_equal(np.asarray(policy.infer(obs)["actions"], np.float32), want)
+    # The default embodiment's connection reads its own robot's keys.
+    policy = websocket_client_policy.WebsocketClientPolicy(f"ws://127.0.0.1:{multi.transport_ports['openpi']}")
+    assert policy.get_server_metadata()["layout"].endswith("libero.json")
+    obs = {"agentview": frames("libero_sim")["image"], "robot_state": np.asarray(EMBODIMENTS["libero_sim"]["state"]),
+           "instruction": TASK, "seed": 3}
+    np.testing.assert_array_equal(np.asarray(policy.infer(obs)["actions"], np.float32), alone["libero_sim"][3])
 
     tritonclient_http = pytest.importorskip("tritonclient.http")
     client = tritonclient_http.InferenceServerClient(f"127.0.0.1:{multi.port}", network_timeout=120.0)

@@ -152,7 +152,7 @@ void add_serve_flags(CLI::App* sub, ServeFlags& f) {
   sub->add_option("--zmq-curve-secret-file", o.zmq_curve_secret_file,
                   "Z85 CURVE secret key: the --zmq-port is encrypted (clients need the public key it prints)")
       ->group(zmq_group);
-  add_openpi_flags(sub, o);
+  add_openpi_flags(sub, f);
 }
 
 
@@ -170,35 +170,39 @@ struct RobotValue {
   bool own = false;   // from a TAG=VALUE entry
 };
 
-// An entry is TAG=VALUE when the text before its first '=' is a served tag; anything else is a value for every
-// embodiment. A tag or the shared value given twice is an error, and so is an apparent TAG= that names neither a
-// served tag nor a file (a mistyped tag).
 RobotValue robot_value(const std::vector<std::string>& entries, const std::vector<std::string>& tags,
                        const std::string& tag, const char* flag, bool is_file) {
-  RobotValue shared, own;
-  std::vector<std::string> seen;
+  const PerEmbodiment values = per_embodiment(entries, tags, flag, is_file);
+  if (const auto own = values.own.find(tag); own != values.own.end()) return {own->second, true};
+  return {values.shared, false};
+}
+
+}  // namespace
+
+PerEmbodiment per_embodiment(const std::vector<std::string>& entries, const std::vector<std::string>& tags,
+                             const char* flag, bool is_file) {
+  PerEmbodiment out;
+  bool shared_given = false;
   for (const std::string& entry : entries) {
     const std::size_t eq = entry.find('=');
     const std::string prefix = eq == std::string::npos ? "" : entry.substr(0, eq);
     const bool tagged = !prefix.empty() && std::find(tags.begin(), tags.end(), prefix) != tags.end();
+    // An apparent TAG= naming neither a served tag nor a file is a mistyped tag, not a value.
     if (!tagged && !prefix.empty() && !tags.empty() && !(is_file && std::filesystem::exists(entry))) {
       std::string served;
       for (const auto& t : tags) served += (served.empty() ? "" : ", ") + t;
       throw Error(ErrorCode::invalid_argument, std::string(flag) + " " + entry + ": '" + prefix +
                                                    "' is not an embodiment served (--embodiment-tag: " + served + ")");
     }
-    const std::string scope = tagged ? prefix : "";
-    if (std::find(seen.begin(), seen.end(), scope) != seen.end())
+    const bool twice = tagged ? out.own.count(prefix) > 0 : shared_given;
+    if (twice)
       throw Error(ErrorCode::invalid_argument, std::string(flag) + " is given twice for " +
-                                                   (tagged ? "embodiment '" + scope + "'" : std::string("every embodiment")));
-    seen.push_back(scope);
-    if (!tagged) shared = {entry, false};
-    else if (scope == tag) own = {entry.substr(eq + 1), true};
+                                                   (tagged ? "embodiment '" + prefix + "'" : std::string("every embodiment")));
+    if (tagged) out.own[prefix] = entry.substr(eq + 1);
+    else out.shared = entry, shared_given = true;
   }
-  return own.value.empty() ? shared : own;
+  return out;
 }
-
-}  // namespace
 
 runtime::WedgeOptions wedge_options(const ServeFlags& f, const std::string& checkpoint_dir, const std::string& tag) {
   runtime::WedgeOptions w = f.options.wedges;
@@ -255,6 +259,9 @@ int run_server(const std::string& checkpoint_dir, const ServeFlags& flags) {
   serve::ServerOptions options = flags.options;
   options.api_key = read_api_key(flags);
   options.wedges = wedge_options(flags, checkpoint_dir);
+  const PerEmbodiment layouts = per_embodiment(flags.openpi_layouts, flags.embodiment_tags, "--openpi-layout", true);
+  if (!layouts.shared.empty()) options.openpi.layout = layouts.shared;
+  options.openpi.layout_by_embodiment = layouts.own;
   if (options.model_name.empty()) options.model_name = serve::checkpoint_name(checkpoint_dir);
   std::vector<serve::HostLoader> hosts;
   for (const std::string& tag : flags.embodiment_tags.empty() ? std::vector<std::string>{""} : flags.embodiment_tags) {

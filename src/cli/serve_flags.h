@@ -3,6 +3,7 @@
 #pragma once
 
 #include <CLI/CLI.hpp>
+#include <map>
 #include <string>
 #include <vector>
 
@@ -27,6 +28,8 @@ struct ServeFlags {
   // Other wedge flags that name files or choices. run_server turns all of them into wedge options before the socket
   // is bound, so a bad file is an error at start-up.
   std::string fallback_api_key_file, rtc_schedule = "linear";
+  // --openpi-layout entries, VALUE or TAG=VALUE the same way (each robot's client sends its own keys).
+  std::vector<std::string> openpi_layouts;
   bool adaptive_steps = false;
   float adaptive_threshold = -1;  // < 0: not given (kDefaultAdaptiveThreshold with --adaptive-steps)
   std::string record_dir, record_images = "hash", record_fsync = "interval";
@@ -35,7 +38,17 @@ struct ServeFlags {
 
 void add_serve_flags(CLI::App* sub, ServeFlags& flags);
 // The --openpi-* flags (openpi_flags.cpp); add_serve_flags adds them.
-void add_openpi_flags(CLI::App* sub, serve::ServerOptions& options);
+void add_openpi_flags(CLI::App* sub, ServeFlags& flags);
+
+// A flag's entries split by embodiment: an entry is TAG=VALUE when the text before its first '=' is one of `tags`,
+// else a value shared by every embodiment. Throws on a value given twice for one embodiment (or twice shared) and on
+// an apparent TAG= that is neither a served tag nor, when `is_file`, an existing path (a mistyped tag).
+struct PerEmbodiment {
+  std::string shared;                       // empty: none
+  std::map<std::string, std::string> own;  // by tag
+};
+PerEmbodiment per_embodiment(const std::vector<std::string>& entries, const std::vector<std::string>& tags,
+                             const char* flag, bool is_file);
 // The embodiment file an export carries; `tether serve` on such a directory uses it unless a flag names another.
 inline constexpr const char* kExportEmbodimentFile = "embodiment.json";
 // Path of the preset models/embodiments/<name>.json after validating it (not_found listing the presets otherwise).

@@ -52,11 +52,20 @@ struct OpenpiConnection {
 };
 
 struct OpenpiTransport::Shared {
-  Shared(const TransportContext& c, openpi::Layouts l)
-      : ctx(c), layouts(std::move(l)), accept_strand(net::make_strand(c.ioc)), acceptor(accept_strand) {}
+  // Every layout is read here, so a bad mapping file fails at start-up.
+  explicit Shared(const TransportContext& c)
+      : ctx(c), layouts(openpi::load_layouts(c.options.openpi.layout)), accept_strand(net::make_strand(c.ioc)),
+        acceptor(accept_strand) {
+    for (const auto& [tag, layout] : c.options.openpi.layout_by_embodiment) own_layouts[tag] = openpi::load_layouts(layout);
+  }
 
   TransportContext ctx;
-  openpi::Layouts layouts;
+  openpi::Layouts layouts;                          // every embodiment's without one of its own
+  std::map<std::string, openpi::Layouts> own_layouts;  // by embodiment tag
+  const openpi::Layouts& layouts_for(const std::string& embodiment) const {
+    const auto it = own_layouts.find(embodiment);
+    return it == own_layouts.end() ? layouts : it->second;
+  }
   net::strand<net::io_context::executor_type> accept_strand;
   tcp::acceptor acceptor;
   std::atomic<bool> draining{false};
@@ -163,11 +172,11 @@ net::awaitable<void> fail_connection(Ws& ws, OpenpiConnection& conn, const std::
 }
 
 // What the connection's embodiment (its upgrade's ?embodiment_tag=, else the server's default) is fed and answers.
-Json metadata(const Shared& s, const ModelHost& host) {
+Json metadata(const Shared& s, const ModelHost& host, const openpi::Layouts& layouts) {
   const Engine& engine = host.engine();
   const auto& spec = engine.spec;
   Json keys = Json::object();
-  for (const auto& layout : s.layouts.candidates) {
+  for (const auto& layout : layouts.candidates) {
     Json cams = Json::object();
     try {
       const auto cameras = openpi::resolve_cameras(layout, spec);
@@ -188,7 +197,7 @@ Json metadata(const Shared& s, const ModelHost& host) {
           {"state_dim", spec.state_dim},
           {"embodiment_tag", spec.embodiment.empty() ? Json(nullptr) : Json(spec.embodiment)},
           {"embodiments", s.ctx.hosts.embodiments()},
-          {"layout", s.layouts.name},
+          {"layout", layouts.name},
           {"cameras", keys}};
 }
 
@@ -232,7 +241,9 @@ net::awaitable<void> websocket_session(std::shared_ptr<Shared> s, std::shared_pt
   co_await ws.async_accept(req, net::redirect_error(net::use_awaitable, ec));
   if (ec) co_return;
   Registration registered(*s, conn);
-  const std::string meta = openpi::encode_json(metadata(*s, s->ctx.hosts.route(embodiment)));
+  const ModelHost& host = s->ctx.hosts.route(embodiment);
+  const openpi::Layouts& layouts = s->layouts_for(host.embodiment());  // the connection's robot's keys
+  const std::string meta = openpi::encode_json(metadata(*s, host, layouts));
   if (!co_await write_frame(ws, meta, false, opts.write_timeout_ms)) co_return;
 
   const std::size_t limit = s->max_frame_bytes();
@@ -283,9 +294,9 @@ net::awaitable<void> websocket_session(std::shared_ptr<Shared> s, std::shared_pt
     ActInput input;
     input.wire_bytes = bytes.size();
     // A text frame is refused inside the pipeline too, so it is counted and traced like any bad frame.
-    input.decode = [bytes, s, binary = ws.got_binary()](const models::ModelSpec& m) {
+    input.decode = [bytes, &layouts, binary = ws.got_binary()](const models::ModelSpec& m) {
       if (!binary) throw HttpError(400, "invalid_msgpack", "expected a binary msgpack frame, got a text frame");
-      return openpi::decode_request(bytes, s->layouts, m);
+      return openpi::decode_request(bytes, layouts, m);
     };
     input.act_json = [](const ActRequest& r) { return act_request_json(r); };
     input.embodiment = [&embodiment] { return embodiment; };
@@ -436,7 +447,7 @@ net::awaitable<void> accept_loop(std::shared_ptr<Shared> s) {
 }  // namespace
 
 OpenpiTransport::OpenpiTransport(const TransportContext& ctx)
-    : shared_(std::make_shared<Shared>(ctx, openpi::load_layouts(ctx.options.openpi.layout))) {}
+    : shared_(std::make_shared<Shared>(ctx)) {}
 
 OpenpiTransport::~OpenpiTransport() { stop(); }
 

@@ -184,6 +184,13 @@ TEST(Gr00tCli, ServingSeveralEmbodimentsRefusesAnUnknownOrRepeatedTag) {
   r = run_gr00t(two + " --embodiment franka --custom-embodiment-config " + (kCase / "checkpoint" / "config.json").string());
   EXPECT_EQ(r.code, 2);
   EXPECT_NE(r.err.find("error: give --embodiment or --custom-embodiment-config, not both"), std::string::npos) << r.err;
+  r = run_gr00t(two + " --openpi-port 0 --openpi-layout robot_x=libero");
+  EXPECT_EQ(r.code, 2);
+  EXPECT_NE(r.err.find("error: --openpi-layout robot_x=libero: 'robot_x' is not an embodiment served"), std::string::npos)
+      << r.err;
+  r = run_gr00t(two + " --openpi-port 0 --openpi-layout libero_sim=no_such_layout.json");
+  EXPECT_EQ(r.code, 2);
+  EXPECT_NE(r.err.find("--openpi-layout 'no_such_layout.json': neither auto"), std::string::npos) << r.err;
 }
 
 // A relative-action checkpoint (tests/fixtures/gr00t_n17_relative) with one sidecar changed: predicts, or fails at
