@@ -492,9 +492,11 @@ void Gr00tModel::velocity(int64_t B, Ptr<const float> x, float time, Ptr<float> 
     be.copy_rows(state_tok_.at(b * Din), Din, tokens_.at(b * T * Din), Din, 1, Din);
   }
   // DiT at this time, then the decoder; the velocity is the action rows.
-  dit_.time_embedding(be, bucket, B, temb_.at());
-  if (dumping()) dump_array<float>(be, "mid.temb." + step, DType::f32, {B, Din}, temb_.at());
-  dit_.forward(be, tokens_.at(), B, T, temb_.at(), kv_, dit_masks_, dit_out_.at());
+  if (dumping()) {
+    dit_.time_embedding(be, bucket, B, temb_.at());
+    dump_array<float>(be, "mid.temb." + step, DType::f32, {B, Din}, temb_.at());
+  }
+  dit_.forward(be, tokens_.at(), B, T, bucket, kv_, dit_masks_, dit_out_.at());
   if (dumping() && k == 0) dump_array<float>(be, "mid.dit_out.step0", DType::f32, {B, T, head_.hidden}, dit_out_.at());
   be.linear(*em.dec1, dit_out_.at(), B * T, dec_mid_.at());
   be.activate(dec_mid_.at(), B * T * head_.hidden, Activation::relu);

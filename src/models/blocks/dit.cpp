@@ -45,7 +45,7 @@ void DitBlock::load(backend::Backend& be, Weights& w, const std::string& p, int6
   ff2 = load_linear(be, w, p + "ff.net.2", dim, inner, true, precision);
 }
 
-void DitScratch::reserve(backend::Backend& be, int64_t rows, int64_t dim, int64_t inner, int64_t cond_rows) {
+void DitScratch::reserve(backend::Backend& be, int64_t rows, int64_t dim, int64_t inner) {
   auto grow = [&](backend::Array<float>& a, int64_t n) {
     if (a.size() < n) a = be.alloc<float>(n);
   };
@@ -54,7 +54,6 @@ void DitScratch::reserve(backend::Backend& be, int64_t rows, int64_t dim, int64_
   grow(qkv, rows * 3 * dim);
   grow(attn, rows * dim);
   grow(ff, rows * inner);
-  grow(mod, cond_rows * 2 * dim);
 }
 
 void dit_block_forward(backend::Backend& be, const DitBlock& B, const DitContext& ctx, Ptr<float> x, const CrossKv* kv,
@@ -62,10 +61,9 @@ void dit_block_forward(backend::Backend& be, const DitBlock& B, const DitContext
   const int64_t rows = ctx.batch * ctx.rows, D = B.dim;
   const float scale = 1.0f / std::sqrt(float(B.head_dim));
   if (B.adaptive) {
-    // LayerNorm without affine, then * (1 + scale) + shift from linear(silu(temb)) = [scale | shift].
-    be.linear(*B.ada, ctx.silu_temb, ctx.batch, s.mod.at());
+    // LayerNorm without affine, then * (1 + scale) + shift, one [scale | shift] row for the whole batch.
     be.layer_norm(x, rows, D, Ptr<const float>(), Ptr<const float>(), ctx.eps, s.normed.at());
-    be.modulate(s.normed.at(), rows, D, s.mod.at(), s.mod.at(D), 2 * D, ctx.rows);
+    be.modulate(s.normed.at(), rows, D, ctx.modulation, ctx.modulation + D, 0, rows);
   } else {
     be.layer_norm(x, rows, D, B.ln1_w.at(), B.ln1_b.at(), ctx.eps, s.normed.at());
   }
@@ -165,21 +163,37 @@ void DiTStack::project_context(backend::Backend& be, Ptr<const float> context, i
   }
 }
 
-void DiTStack::forward(backend::Backend& be, Ptr<float> x, int64_t batch, int64_t rows, Ptr<const float> temb,
+Ptr<const float> DiTStack::time_modulation(backend::Backend& be, int64_t bucket) {
+  if (const auto kept = modulation_.find(bucket); kept != modulation_.end()) return kept->second.at();
+  const int64_t D = cfg_.dim(), row = 2 * D, n = int64_t(blocks_.size()) + 1;
+  backend::Array<float> mod = be.alloc<float>(n * row);
+  // silu(temb) for one item: the batch shares its time.
+  if (silu_temb_.size() < D) silu_temb_ = be.alloc<float>(D);
+  time_embedding(be, bucket, 1, silu_temb_.at());
+  be.activate(silu_temb_.at(), D, Activation::silu);
+  for (std::size_t i = 0; i < blocks_.size(); ++i)
+    if (blocks_[i].adaptive) be.linear(*blocks_[i].ada, silu_temb_.at(), 1, mod.at(int64_t(i) * row));
+  be.linear(*proj_out_1_, silu_temb_.at(), 1, mod.at((n - 1) * row));
+  if (modulation_.size() < kMaxKeptBuckets) return modulation_.emplace(bucket, std::move(mod)).first->second.at();
+  modulation_scratch_ = std::move(mod);
+  return modulation_scratch_.at();
+}
+
+void DiTStack::forward(backend::Backend& be, Ptr<float> x, int64_t batch, int64_t rows, int64_t bucket,
                        const std::vector<CrossKv>& kv, const std::vector<Ptr<const uint8_t>>& masks, Ptr<float> out) {
   const int64_t D = cfg_.dim();
-  scratch_.reserve(be, batch * rows, D, 4 * D, batch);
-  if (silu_temb_.size() < batch * D) silu_temb_ = be.alloc<float>(batch * D);
-  be.copy_rows(temb, D, silu_temb_.at(), D, batch, D);
-  be.activate(silu_temb_.at(), batch * D, Activation::silu);
-  const DitContext ctx{batch, rows, silu_temb_.at(), 1e-5f};
-  for (std::size_t i = 0; i < blocks_.size(); ++i)
+  scratch_.reserve(be, batch * rows, D, 4 * D);
+  const Ptr<const float> mod = time_modulation(be, bucket);
+  DitContext ctx{batch, rows, Ptr<const float>(), 1e-5f};
+  for (std::size_t i = 0; i < blocks_.size(); ++i) {
+    ctx.modulation = mod + int64_t(i) * 2 * D;
     dit_block_forward(be, blocks_[i], ctx, x, blocks_[i].cross ? &kv[i] : nullptr,
                       i < masks.size() ? masks[i] : Ptr<const uint8_t>(), scratch_);
+  }
   // Output: (shift, scale) = proj_out_1(silu(temb)); LayerNorm (eps 1e-6, no affine) * (1 + scale) + shift.
-  be.linear(*proj_out_1_, silu_temb_.at(), batch, scratch_.mod.at());
+  const Ptr<const float> out_mod = mod + int64_t(blocks_.size()) * 2 * D;
   be.layer_norm(x, batch * rows, D, Ptr<const float>(), Ptr<const float>(), 1e-6f, scratch_.normed.at());
-  be.modulate(scratch_.normed.at(), batch * rows, D, scratch_.mod.at(D), scratch_.mod.at(), 2 * D, rows);
+  be.modulate(scratch_.normed.at(), batch * rows, D, out_mod + D, out_mod, 0, batch * rows);
   be.linear(*proj_out_2_, scratch_.normed.at(), batch * rows, out);
 }
 
@@ -205,7 +219,7 @@ void SelfAttentionStack::load(backend::Backend& be, Weights& w, const std::strin
 void SelfAttentionStack::forward(backend::Backend& be, Ptr<float> x, int64_t batch, int64_t rows) {
   if (blocks_.empty()) return;
   const int64_t D = blocks_[0].dim;
-  scratch_.reserve(be, batch * rows, D, 4 * D, batch);
+  scratch_.reserve(be, batch * rows, D, 4 * D);
   const DitContext ctx{batch, rows, Ptr<const float>(), 1e-5f};
   for (const DitBlock& B : blocks_) dit_block_forward(be, B, ctx, x, nullptr, Ptr<const uint8_t>(), scratch_);
 }

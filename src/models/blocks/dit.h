@@ -6,6 +6,7 @@
 #pragma once
 
 #include <cstdint>
+#include <map>
 #include <memory>
 #include <string>
 #include <vector>
@@ -31,8 +32,8 @@ struct DitBlock {
 
 // Scratch of a block pass, grown once per shape.
 struct DitScratch {
-  backend::Array<float> normed, q, qkv, attn, ff, mod;
-  void reserve(backend::Backend& be, int64_t rows, int64_t dim, int64_t inner, int64_t cond_rows);
+  backend::Array<float> normed, q, qkv, attn, ff;
+  void reserve(backend::Backend& be, int64_t rows, int64_t dim, int64_t inner);
 };
 
 // Keys and values of the other stream for one cross block, computed once per request: [batch, len, dim] each.
@@ -44,7 +45,9 @@ struct CrossKv {
 // What the blocks attend to besides themselves: per cross block its keys/values and a key mask [batch, rows, len].
 struct DitContext {
   int64_t batch = 0, rows = 0;  // tokens per item of x
-  backend::Ptr<const float> silu_temb;  // [batch, dim]: silu(time embedding), for adaptive norms
+  // Adaptive norms: the block's [scale | shift] [2 * dim] from linear(silu(time embedding)), shared by the batch
+  // (every item is at the same time).
+  backend::Ptr<const float> modulation;
   float eps = 1e-5f;
 };
 
@@ -76,9 +79,9 @@ class DiTStack {
   // The timestep encoder for one integer bucket shared by the batch: sinusoid (cos first), linear, SiLU, linear ->
   // temb [batch, dim].
   void time_embedding(backend::Backend& be, int64_t bucket, int64_t batch, backend::Ptr<float> temb);
-  // x [batch * rows, dim] through every block, then the modulated output norm and projection -> out
-  // [batch * rows, output_dim]. masks[i]: block i's key mask [batch, rows, len] (cross blocks; null: none).
-  void forward(backend::Backend& be, backend::Ptr<float> x, int64_t batch, int64_t rows, backend::Ptr<const float> temb,
+  // x [batch * rows, dim] at timestep `bucket` through every block, then the modulated output norm and projection ->
+  // out [batch * rows, output_dim]. masks[i]: block i's key mask [batch, rows, len] (cross blocks; null: none).
+  void forward(backend::Backend& be, backend::Ptr<float> x, int64_t batch, int64_t rows, int64_t bucket,
                const std::vector<CrossKv>& kv, const std::vector<backend::Ptr<const uint8_t>>& masks,
                backend::Ptr<float> out);
   double flops(int64_t batch, int64_t rows, int64_t context_len) const;
@@ -90,6 +93,15 @@ class DiTStack {
   DitScratch scratch_;
   backend::Array<float> silu_temb_, time_in_, time_mid_;
   std::vector<float> host_sinusoid_;  // [256], reused by every step
+
+  // What the timestep alone decides, for every item of every request: row i (2 * dim) is block i's [scale | shift],
+  // the last row the output norm's [shift | scale], each linear(silu(time embedding)). The same layers run on the
+  // same row as a per-request pass would, so the values are identical; kept per bucket (a sampler visits `steps` of
+  // them), which saves 33 weight-streaming matrix-vector products per step at GR00T's size.
+  backend::Ptr<const float> time_modulation(backend::Backend& be, int64_t bucket);
+  std::map<int64_t, backend::Array<float>> modulation_;
+  backend::Array<float> modulation_scratch_;  // for buckets past kMaxKeptBuckets
+  static constexpr std::size_t kMaxKeptBuckets = 64;
 };
 
 // Layer-normed self-attention blocks with affine norms and no mask (GR00T N1.7's vl_self_attention).
