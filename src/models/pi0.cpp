@@ -9,6 +9,7 @@
 #include <cmath>
 #include <cstring>
 #include <filesystem>
+#include <map>
 #include <optional>
 
 #include "backend/backend.h"
@@ -235,6 +236,13 @@ class PiZero final : public Model {
   void build_prefix(const std::vector<ModelInput>& batch, ModelOutput& out);
   void run_prefix();
   void denoise_step(Ptr<const float> x, float time, Ptr<float> v);
+  void time_sinusoid(float time);     // into time_emb_
+  void adarms_condition(float time);  // pi0.5: into cond_
+  // pi0.5: what the time alone decides, for every item of every request: the expert's adaptive modulations
+  // (ActionExpert::adaptive_modulations), then the final norm's [scale | shift | gate]. The same layers run on the same
+  // vector as each step would, so the values are identical; kept per time (a sampler visits `steps` of them), which
+  // saves 37 weight-streaming matrix-vector products per step at full size.
+  Ptr<const float> time_modulations(float time);
   void ensure_buffers(int64_t batch, int64_t prefix_len);
   double flops(int64_t images, int64_t steps_run) const;
 
@@ -267,7 +275,10 @@ class PiZero final : public Model {
   backend::Array<int64_t> token_ids_, prefix_pos_, state_pos_, action_pos_;
   backend::Array<uint8_t> prefix_mask_, state_mask_, action_mask_;
   KvCache cache_;
-  backend::Array<float> x_t_, v_t_, suffix_x_, cat_, time_emb_, time_h_, cond_, mlp_h_, normed_, final_mod_;
+  backend::Array<float> x_t_, v_t_, suffix_x_, cat_, time_emb_, time_h_, cond_, mlp_h_, normed_;
+  std::map<uint32_t, backend::Array<float>> time_modulations_;  // by the time's float bits
+  backend::Array<float> time_modulation_scratch_;               // for times past kMaxKeptTimes
+  static constexpr std::size_t kMaxKeptTimes = 64;
   int64_t images_run_ = 0;
 };
 
@@ -443,7 +454,6 @@ void PiZero::ensure_buffers(int64_t batch, int64_t prefix_len) {
   time_emb_ = be.alloc<float>(E);
   time_h_ = be.alloc<float>(E);
   cond_ = be.alloc<float>(E);
-  final_mod_ = be.alloc<float>(3 * E);
 }
 
 // The text the tokenizer sees: pi0 appends a newline (Pi0NewLineProcessor); pi0.5 writes the state into the prompt
@@ -708,18 +718,50 @@ void PiZero::run_prefix() {
   be.upload(host_action_pos_.data(), B * C, action_pos_.at());
 }
 
-// One Euler step's velocity from x ([B, chunk, max_action_dim]) at `time`, into v (same layout).
-void PiZero::denoise_step(Ptr<const float> x_t, float time, Ptr<float> v) {
+void PiZero::time_sinusoid(float time) {
   backend::Backend& be = *be_;
-  const int64_t B = B_, C = spec_.chunk_size, E = expert_cfg_.hidden, rows = B * C;
+  const int64_t E = expert_cfg_.hidden;
   if (pz_.float32_time) {
     const std::vector<float> emb = fluxvla_time_embedding(time, E, min_period_, max_period_);
     be.upload(emb.data(), E, time_emb_.at());
   } else {
     be.time_embedding(double(time), E, min_period_, max_period_, time_emb_.at());
   }
+}
+
+// silu(time_mlp_out(silu(time_mlp_in(t)))): one vector for the whole batch (every item is at the same time).
+void PiZero::adarms_condition(float time) {
+  backend::Backend& be = *be_;
+  const int64_t E = expert_cfg_.hidden;
+  time_sinusoid(time);
+  be.linear(*time_in_, time_emb_.at(), 1, time_h_.at());
+  be.activate(time_h_.at(), E, backend::Activation::silu);
+  be.linear(*time_out_, time_h_.at(), 1, cond_.at());
+  be.activate(cond_.at(), E, backend::Activation::silu);
+}
+
+Ptr<const float> PiZero::time_modulations(float time) {
+  uint32_t key;
+  std::memcpy(&key, &time, sizeof key);
+  if (const auto kept = time_modulations_.find(key); kept != time_modulations_.end()) return kept->second.at();
+  backend::Backend& be = *be_;
+  const int64_t layers_size = expert_.modulation_size();
+  backend::Array<float> mod = be.alloc<float>(layers_size + 3 * expert_cfg_.hidden);
+  adarms_condition(time);
+  expert_.adaptive_modulations(be, cond_.at(), mod.at());
+  be.linear(*expert_norm_mod_, cond_.at(), 1, mod.at(layers_size));
+  if (time_modulations_.size() < kMaxKeptTimes) return time_modulations_.emplace(key, std::move(mod)).first->second.at();
+  time_modulation_scratch_ = std::move(mod);
+  return time_modulation_scratch_.at();
+}
+
+// One Euler step's velocity from x ([B, chunk, max_action_dim]) at `time`, into v (same layout).
+void PiZero::denoise_step(Ptr<const float> x_t, float time, Ptr<float> v) {
+  backend::Backend& be = *be_;
+  const int64_t B = B_, C = spec_.chunk_size, E = expert_cfg_.hidden, rows = B * C;
   if (!pi05_) {
     // [action_in(x_t), time] -> action_time_mlp_in -> silu -> action_time_mlp_out.
+    time_sinusoid(time);
     be.linear(*action_in_, x_t, rows, cat_.at(), false, /*ldy=*/2 * E);
     be.copy_rows(time_emb_.at(), 0, cat_.at(E), 2 * E, rows, E);
     be.linear(*time_in_, cat_.at(), rows, mlp_h_.at());
@@ -729,24 +771,20 @@ void PiZero::denoise_step(Ptr<const float> x_t, float time, Ptr<float> v) {
     be.rms_norm(suffix_x_.at(), rows, E, expert_norm_.at(), expert_cfg_.rms_norm_eps, normed_.at(),
                 backend::RmsScale::one_plus_weight);
   } else {
-    // The time alone conditions the adaptive norms: silu(time_mlp_out(silu(time_mlp_in(t)))), one vector for the
-    // whole batch (every item is at the same time).
-    be.linear(*time_in_, time_emb_.at(), 1, time_h_.at());
-    be.activate(time_h_.at(), E, backend::Activation::silu);
-    be.linear(*time_out_, time_h_.at(), 1, cond_.at());
-    be.activate(cond_.at(), E, backend::Activation::silu);
+    // The time alone conditions the adaptive norms.
+    const Ptr<const float> mod = time_modulations(time);
     if (dumping() && time == 1.0f) {  // the first step's conditioning, one row per item as upstream holds it
+      adarms_condition(time);
       std::vector<float> c(static_cast<std::size_t>(E)), rows_out;
       be.download(Ptr<const float>(cond_.at()), E, c.data());
       for (int64_t b = 0; b < B; ++b) rows_out.insert(rows_out.end(), c.begin(), c.end());
       dump("mid.adarms_cond.step0", Tensor{DType::f32, {B, E}, rows_out.data(), nullptr});
     }
-    const Conditioning cond{cond_.at(), 1, rows};
     be.linear(*action_in_, x_t, rows, suffix_x_.at());
-    expert_.forward(be, suffix_x_.at(), B, C, cache_, suffix_base_, action_pos_.at(), action_mask_.at(), {}, {}, &cond);
-    be.linear(*expert_norm_mod_, cond_.at(), 1, final_mod_.at());
-    be.rms_norm_modulated(suffix_x_.at(), rows, E, final_mod_.at(), final_mod_.at(E), 3 * E, rows,
-                          expert_cfg_.rms_norm_eps, normed_.at());
+    expert_.forward(be, suffix_x_.at(), B, C, cache_, suffix_base_, action_pos_.at(), action_mask_.at(), {}, {}, mod);
+    const Ptr<const float> final_mod = mod + expert_.modulation_size();
+    be.rms_norm_modulated(suffix_x_.at(), rows, E, final_mod, final_mod + E, 0, rows, expert_cfg_.rms_norm_eps,
+                          normed_.at());
   }
   be.linear(*action_out_, normed_.at(), rows, v);
 }
@@ -759,7 +797,6 @@ double PiZero::flops(int64_t images, int64_t steps_run) const {
   double step = linear_flops(*action_in_, B * C) + expert_.forward_flops(B, C, suffix_base_) +
                 linear_flops(*action_out_, B * C);
   if (!pi05_) step += linear_flops(*time_in_, B * C) + linear_flops(*time_out_, B * C);
-  else step += linear_flops(*time_in_, 1) + linear_flops(*time_out_, 1) + linear_flops(*expert_norm_mod_, 1);
   return f + double(steps_run) * step;
 }
 

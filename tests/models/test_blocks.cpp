@@ -128,27 +128,31 @@ TEST_P(ExpertBlock, MatchesThePlainReference) {
   };
   const auto jm = put(joint_mask), cm = put(cross_mask);
   const auto jp = put(joint_pos), cp = put(cross_pos);
-  const auto x0 = random_vec(kBatch * kLen * kHidden, 102, 2.0f), cond = random_vec(kBatch * kCond, 103);
+  // One conditioning vector for the whole batch (pi0.5's time: every item is at the same one).
+  const auto x0 = random_vec(kBatch * kLen * kHidden, 102, 2.0f), cond = random_vec(kCond, 103);
   const auto xa = put(x0), ca = put(cond);
-  const Conditioning conditioning{ca.at(), kBatch, kLen};
+  backend::Array<float> modulations;
+  if (c.norm == NormKind::adaptive_rms) {
+    modulations = be->alloc<float>(expert.modulation_size());
+    expert.adaptive_modulations(*be, ca.at(), modulations.at());
+  }
 
   expert.prepare(*be, cache, kPrefix);
   const double before = be->flops().total();
-  expert.forward(*be, xa.at(), kBatch, kLen, cache, kPrefix, jp.at(), jm.at(), cp.at(), cm.at(), &conditioning);
+  expert.forward(*be, xa.at(), kBatch, kLen, cache, kPrefix, jp.at(), jm.at(), cp.at(), cm.at(), modulations.at());
   EXPECT_DOUBLE_EQ(be->flops().total() - before, expert.forward_flops(kBatch, kLen, kPrefix));
   std::vector<float> got(x0.size());
   be->download(Ptr<const float>(xa.at()), int64_t(got.size()), got.data());
 
   // The reference, one item at a time.
   const std::string p = "layers.0.";
-  auto norm = [&](const std::vector<double>& x, const std::string& which, int64_t b, double* gate_out) {
+  auto norm = [&](const std::vector<double>& x, const std::string& which, double* gate_out) {
     double sq = 0;
     for (double v : x) sq += v * v;
     const double inv = 1.0 / std::sqrt(sq / double(kHidden) + double(cfg.rms_norm_eps));
     std::vector<double> y(x.size());
     if (c.norm == NormKind::adaptive_rms) {
-      const std::vector<float> cb(cond.begin() + b * kCond, cond.begin() + (b + 1) * kCond);
-      const std::vector<double> cd(cb.begin(), cb.end());
+      const std::vector<double> cd(cond.begin(), cond.end());
       const auto mod = matvec(ck[p + which + ".dense.weight"], cd, 3 * kHidden, &ck[p + which + ".dense.bias"]);
       for (int64_t i = 0; i < kHidden; ++i) {
         y[i] = x[i] * inv * (1.0 + mod[i]) + mod[kHidden + i];
@@ -184,7 +188,7 @@ TEST_P(ExpertBlock, MatchesThePlainReference) {
     }
     for (int64_t t = 0; t < kLen; ++t) {
       x[t].assign(x0.begin() + (b * kLen + t) * kHidden, x0.begin() + (b * kLen + t + 1) * kHidden);
-      const auto n = norm(x[t], "input_layernorm", b, gate1[t].data());
+      const auto n = norm(x[t], "input_layernorm", gate1[t].data());
       q[t] = matvec(ck[p + "self_attn.q_proj.weight"], n, kHeads * kHeadDim);
       rope_ref(q[t], kHeads, c.cross ? cross_pos[b * kLen + t] : joint_pos[b * kLen + t]);
       if (!c.cross) {
@@ -215,7 +219,7 @@ TEST_P(ExpertBlock, MatchesThePlainReference) {
       const auto o = matvec(ck[p + "self_attn.o_proj.weight"], attn, kHidden);
       std::vector<double> h1(static_cast<std::size_t>(kHidden));
       for (int64_t i = 0; i < kHidden; ++i) h1[i] = x[t][i] + o[i] * gate1[t][i];
-      const auto n2 = norm(h1, "post_attention_layernorm", b, gate2[t].data());
+      const auto n2 = norm(h1, "post_attention_layernorm", gate2[t].data());
       const auto g = matvec(ck[p + "mlp.gate_proj.weight"], n2, kInter), u = matvec(ck[p + "mlp.up_proj.weight"], n2, kInter);
       std::vector<double> act(static_cast<std::size_t>(kInter));
       for (int64_t i = 0; i < kInter; ++i) {

@@ -54,7 +54,7 @@ void ActionExpert::prepare(backend::Backend& be, const KvCache& cache, int64_t L
 
 void ActionExpert::forward(backend::Backend& be, Ptr<float> x, int64_t B, int64_t len, KvCache& cache, int64_t Lp,
                            Ptr<const int64_t> joint_pos, Ptr<const uint8_t> joint_mask, Ptr<const int64_t> cross_pos,
-                           Ptr<const uint8_t> cross_mask, const Conditioning* cond) {
+                           Ptr<const uint8_t> cross_mask, Ptr<const float> modulations) {
   const int64_t E = cfg_.hidden, H = cfg_.heads, KvH = cfg_.kv_heads, hd = cfg_.head_dim;
   const int64_t q_dim = H * hd, kv_dim = KvH * hd, qkv_dim = q_dim + 2 * kv_dim, rows = B * len;
   if (cache.capacity < Lp + len) throw Error(ErrorCode::internal, "action expert: no room after the prefix in the cache");
@@ -63,6 +63,12 @@ void ActionExpert::forward(backend::Backend& be, Ptr<float> x, int64_t B, int64_
   for (std::size_t r = 0; r < routes_.size(); ++r) {
     const DecoderLayer& X = layers_[std::size_t(routes_[r].expert_layer)];
     const int64_t li = routes_[r].cache_layer;
+    Conditioning layer_cond;
+    if (modulations) {
+      const Ptr<const float> m = modulations + routes_[r].expert_layer * 2 * 3 * E;
+      layer_cond = {m, m + 3 * E};
+    }
+    const Conditioning* cond = modulations ? &layer_cond : nullptr;
     norm_input(be, X, cfg_, x, rows, scratch_.normed.at(), scratch_, cond);
     if (!X.cross()) {
       be.linear(*X.qkv, scratch_.normed.at(), rows, scratch_.qkv.at());
@@ -91,6 +97,16 @@ void ActionExpert::forward(backend::Backend& be, Ptr<float> x, int64_t B, int64_
   }
 }
 
+void ActionExpert::adaptive_modulations(backend::Backend& be, Ptr<const float> cond, Ptr<float> out) const {
+  const int64_t row = 3 * cfg_.hidden;
+  for (std::size_t i = 0; i < layers_.size(); ++i) {
+    const DecoderLayer& X = layers_[i];
+    if (!X.input_mod) throw Error(ErrorCode::internal, "action expert: modulations asked of a layer without adaptive norms");
+    be.linear(*X.input_mod, cond, 1, out + int64_t(2 * i) * row);
+    be.linear(*X.post_mod, cond, 1, out + int64_t(2 * i + 1) * row);
+  }
+}
+
 double ActionExpert::prepare_flops(int64_t batch, int64_t Lp) const {
   double f = 0;
   for (const Route& r : routes_) {
@@ -107,7 +123,6 @@ double ActionExpert::forward_flops(int64_t batch, int64_t len, int64_t Lp) const
     const int64_t keys = X.cross() ? Lp : Lp + len;
     f += linear_flops(*X.qkv, batch * len) + linear_flops(*X.o, batch * len) + linear_flops(*X.gate_up, batch * len) +
          linear_flops(*X.down, batch * len);
-    if (X.input_mod) f += linear_flops(*X.input_mod, batch) + linear_flops(*X.post_mod, batch);
     f += 4.0 * double(batch * len) * double(keys) * double(cfg_.heads) * double(cfg_.head_dim);
   }
   return f;

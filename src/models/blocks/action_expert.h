@@ -33,11 +33,16 @@ class ActionExpert {
   void prepare(backend::Backend& be, const KvCache& cache, int64_t prefix_len);
   // x [batch, len, hidden] in place through every routed layer. Joint layers write their K/V to cache rows
   // [prefix_len, prefix_len + len) and attend with joint_mask [batch, len, prefix_len + len]; cross layers attend with
-  // cross_mask [batch, len, prefix_len]. Positions [batch, len] each. `cond`: for adaptive norms (pi0.5's time).
+  // cross_mask [batch, len, prefix_len]. Positions [batch, len] each. `modulations`: for adaptive norms (pi0.5's
+  // time), as adaptive_modulations() writes them.
   void forward(backend::Backend& be, backend::Ptr<float> x, int64_t batch, int64_t len, KvCache& cache,
                int64_t prefix_len, backend::Ptr<const int64_t> joint_positions, backend::Ptr<const uint8_t> joint_mask,
                backend::Ptr<const int64_t> cross_positions, backend::Ptr<const uint8_t> cross_mask,
-               const Conditioning* cond = nullptr);
+               backend::Ptr<const float> modulations = {});
+  // Adaptive norms: every layer's input and post-attention modulation from one conditioning vector `cond`
+  // [cond_dim], into `out` [modulation_size()]: layer i's input norm at 2 i * 3 hidden, its post norm after it.
+  void adaptive_modulations(backend::Backend& be, backend::Ptr<const float> cond, backend::Ptr<float> out) const;
+  int64_t modulation_size() const { return 2 * int64_t(layers_.size()) * 3 * cfg_.hidden; }
   // Matrix-product flops of prepare() and of one forward().
   double prepare_flops(int64_t batch, int64_t prefix_len) const;
   double forward_flops(int64_t batch, int64_t len, int64_t prefix_len) const;

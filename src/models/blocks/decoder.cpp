@@ -112,23 +112,15 @@ backend::RmsScale rms_scale(NormKind k) {
 Activation mlp_activation(MlpKind k) { return k == MlpKind::swiglu ? Activation::silu : Activation::gelu_tanh; }
 }  // namespace
 
-// An adaptive norm's modulation [items, scale | shift | gate] from the conditioning, into `mod`.
-void modulation(backend::Backend& be, const backend::LinearWeights& dense, int64_t hidden, const Conditioning* c,
-                backend::Array<float>& mod) {
-  if (!c || !c->cond) throw Error(ErrorCode::internal, "decoder: an adaptive norm without its conditioning");
-  if (mod.size() < c->items * 3 * hidden) mod = be.alloc<float>(c->items * 3 * hidden);
-  be.linear(dense, c->cond, c->items, mod.at());
-}
-
 void norm_input(backend::Backend& be, const DecoderLayer& L, const DecoderConfig& cfg, Ptr<const float> x, int64_t rows,
                 Ptr<float> out, DecoderScratch& s, const Conditioning* c) {
   if (L.norm != NormKind::adaptive_rms) {
     be.rms_norm(x, rows, L.hidden, L.input_norm.at(), cfg.rms_norm_eps, out, rms_scale(L.norm));
     return;
   }
+  if (!c || !c->input) throw Error(ErrorCode::internal, "decoder: an adaptive norm without its conditioning");
   const int64_t h = L.hidden;
-  modulation(be, *L.input_mod, h, c, s.mod_in);
-  be.rms_norm_modulated(x, rows, h, s.mod_in.at(), s.mod_in.at(h), 3 * h, c->rows_per_item, cfg.rms_norm_eps, out);
+  be.rms_norm_modulated(x, rows, h, c->input, c->input + h, 0, rows, cfg.rms_norm_eps, out);
 }
 
 void finish_layer(backend::Backend& be, const DecoderLayer& L, const DecoderConfig& cfg, Ptr<const float> attn,
@@ -145,14 +137,12 @@ void finish_layer(backend::Backend& be, const DecoderLayer& L, const DecoderConf
   // Adaptive (pi0.5's expert): each residual branch is multiplied by the gate of the norm before it.
   const int64_t h = L.hidden;
   be.linear(*L.o, attn, rows, s.branch.at());
-  be.gated_add(x, s.branch.at(), s.mod_in.at(2 * h), 3 * h, rows, h, c->rows_per_item);
-  modulation(be, *L.post_mod, h, c, s.mod_post);
-  be.rms_norm_modulated(x, rows, h, s.mod_post.at(), s.mod_post.at(h), 3 * h, c->rows_per_item, cfg.rms_norm_eps,
-                        normed);
+  be.gated_add(x, s.branch.at(), c->input + 2 * h, 0, rows, h, rows);
+  be.rms_norm_modulated(x, rows, h, c->post, c->post + h, 0, rows, cfg.rms_norm_eps, normed);
   be.linear(*L.gate_up, normed, rows, gu);
   be.gated(gu, rows, L.intermediate, mlp_activation(L.mlp), act);
   be.linear(*L.down, act, rows, s.branch.at());
-  be.gated_add(x, s.branch.at(), s.mod_post.at(2 * h), 3 * h, rows, h, c->rows_per_item);
+  be.gated_add(x, s.branch.at(), c->post + 2 * h, 0, rows, h, rows);
 }
 
 void DecoderStack::load(backend::Backend& be, Weights& w, const std::string& prefix, const DecoderConfig& cfg,

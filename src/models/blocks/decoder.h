@@ -76,15 +76,15 @@ struct DecoderLayer {
   LayerFlops flops(int64_t rows, int64_t keys, int64_t heads, int64_t head_dim) const;
 };
 
-// What adaptive norms are conditioned on: [items, cond_dim], one vector per batch item of rows_per_item rows.
+// One adaptive layer's modulations, each [scale | shift | gate] (3 * hidden) from linear(conditioning): its input
+// norm's and its post-attention norm's. One row serves every row of the pass (pi0.5: every item is at the same time).
 struct Conditioning {
-  backend::Ptr<const float> cond;
-  int64_t items = 0, rows_per_item = 0;
+  backend::Ptr<const float> input, post;
 };
 
 // Scratch activations of a decoder pass, sized once per shape: the steady state allocates nothing.
 struct DecoderScratch {
-  backend::Array<float> normed, qkv, q, attn, mlp, branch, mod_in, mod_post;
+  backend::Array<float> normed, qkv, q, attn, mlp, branch;
   void reserve(backend::Backend& be, int64_t rows, int64_t hidden, int64_t q_dim, int64_t kv_dim, int64_t intermediate);
 };
 
