@@ -69,7 +69,7 @@ void ActionExpert::forward(backend::Backend& be, Ptr<float> x, int64_t B, int64_
       layer_cond = {m, m + 3 * E};
     }
     const Conditioning* cond = modulations ? &layer_cond : nullptr;
-    norm_input(be, X, cfg_, x, rows, scratch_.normed.at(), scratch_, cond);
+    norm_input(be, X, cfg_, x, rows, scratch_.normed.at(), cond);
     if (!X.cross()) {
       be.linear(*X.qkv, scratch_.normed.at(), rows, scratch_.qkv.at());
       be.copy_rows(scratch_.qkv.at(), qkv_dim, scratch_.q.at(), q_dim, rows, q_dim);

@@ -113,7 +113,7 @@ Activation mlp_activation(MlpKind k) { return k == MlpKind::swiglu ? Activation:
 }  // namespace
 
 void norm_input(backend::Backend& be, const DecoderLayer& L, const DecoderConfig& cfg, Ptr<const float> x, int64_t rows,
-                Ptr<float> out, DecoderScratch& s, const Conditioning* c) {
+                Ptr<float> out, const Conditioning* c) {
   if (L.norm != NormKind::adaptive_rms) {
     be.rms_norm(x, rows, L.hidden, L.input_norm.at(), cfg.rms_norm_eps, out, rms_scale(L.norm));
     return;
@@ -181,7 +181,7 @@ void DecoderStack::run(backend::Backend& be, Ptr<float> x, int64_t B, int64_t le
   for (std::size_t li = 0; li < layers_.size(); ++li) {
     const DecoderLayer& L = layers_[li];
     const bool kv_only = bool(L.kv);
-    norm_input(be, L, cfg_, x, rows, scratch_.normed.at(), scratch_);
+    norm_input(be, L, cfg_, x, rows, scratch_.normed.at());
     be.linear(kv_only ? *L.kv : *L.qkv, scratch_.normed.at(), rows, scratch_.qkv.at());
     const int64_t stride = kv_only ? 2 * kv_dim : q_dim + 2 * kv_dim, k_off = kv_only ? 0 : q_dim;
     if (!kv_only) {

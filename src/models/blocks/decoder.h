@@ -91,7 +91,7 @@ struct DecoderScratch {
 // The two halves of a layer's forward pass, shared by every stack and expert. `cond` is needed by adaptive norms only.
 // Input norm: out = norm(x) (the layer's first norm).
 void norm_input(backend::Backend& be, const DecoderLayer& L, const DecoderConfig& cfg, backend::Ptr<const float> x,
-                int64_t rows, backend::Ptr<float> out, DecoderScratch& s, const Conditioning* cond = nullptr);
+                int64_t rows, backend::Ptr<float> out, const Conditioning* cond = nullptr);
 // After attention: x += o(attn); x += mlp(post_norm(x)); with adaptive norms each branch is scaled by its gate.
 void finish_layer(backend::Backend& be, const DecoderLayer& L, const DecoderConfig& cfg, backend::Ptr<const float> attn,
                   int64_t rows, backend::Ptr<float> x, DecoderScratch& s, const Conditioning* cond = nullptr);
