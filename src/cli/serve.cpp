@@ -192,7 +192,8 @@ PerEmbodiment per_embodiment(const std::vector<std::string>& entries, const std:
       std::string served;
       for (const auto& t : tags) served += (served.empty() ? "" : ", ") + t;
       throw Error(ErrorCode::invalid_argument, std::string(flag) + " " + entry + ": '" + prefix +
-                                                   "' is not an embodiment served (--embodiment-tag: " + served + ")");
+                                                   "' is not an embodiment served (--embodiment-tag: " + served + ")" +
+                                                   (is_file ? ", and no file '" + entry + "' exists" : ""));
     }
     const bool twice = tagged ? out.own.count(prefix) > 0 : shared_given;
     if (twice)
