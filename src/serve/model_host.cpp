@@ -155,8 +155,9 @@ ModelHosts::ModelHosts(std::vector<HostLoader> loaders, runtime::BatcherOptions 
         throw Error(ErrorCode::invalid_argument, "embodiment '" + l.embodiment + "' is named twice");
     // Each host's wedge counters and gauges are series of their own, by embodiment.
     std::string labels = several ? "embodiment=\"" + escape_label(l.embodiment) + "\"" : "";
-    hosts_.push_back(std::make_unique<ModelHost>(std::move(l.load), batch, host_wedges(l.wedges ? *l.wedges : wedges, l.embodiment, several),
-                                                 metrics, l.embodiment, std::move(labels)));
+    runtime::WedgeOptions own = host_wedges(l.wedges ? *l.wedges : wedges, l.embodiment, several);
+    hosts_.push_back(std::make_unique<ModelHost>(std::move(l.load), batch, std::move(own), metrics, l.embodiment,
+                                                 std::move(labels)));
   }
 }
 

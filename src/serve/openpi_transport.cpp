@@ -56,11 +56,12 @@ struct OpenpiTransport::Shared {
   explicit Shared(const TransportContext& c)
       : ctx(c), layouts(openpi::load_layouts(c.options.openpi.layout)), accept_strand(net::make_strand(c.ioc)),
         acceptor(accept_strand) {
-    for (const auto& [tag, layout] : c.options.openpi.layout_by_embodiment) own_layouts[tag] = openpi::load_layouts(layout);
+    for (const auto& [tag, layout] : c.options.openpi.layout_by_embodiment)
+      own_layouts[tag] = openpi::load_layouts(layout);
   }
 
   TransportContext ctx;
-  openpi::Layouts layouts;                          // every embodiment's without one of its own
+  openpi::Layouts layouts;                             // every embodiment's without one of its own
   std::map<std::string, openpi::Layouts> own_layouts;  // by embodiment tag
   const openpi::Layouts& layouts_for(const std::string& embodiment) const {
     const auto it = own_layouts.find(embodiment);
