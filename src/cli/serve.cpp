@@ -259,11 +259,6 @@ int run_server(const std::string& checkpoint_dir, const ServeFlags& flags) {
     throw Error(ErrorCode::not_found, checkpoint_dir + ": not a checkpoint directory");
   serve::ServerOptions options = flags.options;
   options.api_key = read_api_key(flags);
-  options.wedges = wedge_options(flags, checkpoint_dir);
-  const PerEmbodiment layouts = per_embodiment(flags.openpi_layouts, flags.embodiment_tags, "--openpi-layout", true);
-  if (!layouts.shared.empty()) options.openpi.layout = layouts.shared;
-  options.openpi.layout_by_embodiment = layouts.own;
-  if (options.model_name.empty()) options.model_name = serve::checkpoint_name(checkpoint_dir);
   std::vector<serve::HostLoader> hosts;
   for (const std::string& tag : flags.embodiment_tags.empty() ? std::vector<std::string>{""} : flags.embodiment_tags) {
     const models::LoadOptions load = load_options(flags.precision, tag);
@@ -271,6 +266,12 @@ int run_server(const std::string& checkpoint_dir, const ServeFlags& flags) {
     hosts.push_back({tag, [checkpoint_dir, load] { return serve::load_policy_engine(checkpoint_dir, load); },
                      wedge_options(flags, checkpoint_dir, tag)});
   }
+  // The server's own wedge options (fallback, sampler, traces) are every host's; the default host's stand for them.
+  options.wedges = *hosts.front().wedges;
+  const PerEmbodiment layouts = per_embodiment(flags.openpi_layouts, flags.embodiment_tags, "--openpi-layout", true);
+  if (!layouts.shared.empty()) options.openpi.layout = layouts.shared;
+  options.openpi.layout_by_embodiment = layouts.own;
+  if (options.model_name.empty()) options.model_name = serve::checkpoint_name(checkpoint_dir);
   serve::Server server(options, std::move(hosts));
   const uint16_t port = server.start();
   // The other transports first: the HTTP line, which clients and scripts wait for, means everything is bound.

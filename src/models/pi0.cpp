@@ -17,6 +17,7 @@
 #include "models/blocks/action_expert.h"
 #include "models/blocks/attention_masks.h"
 #include "models/blocks/decoder.h"
+#include "models/blocks/kept_per_time.h"
 #include "models/blocks/linear.h"
 #include "models/blocks/sampler.h"
 #include "models/blocks/vision_tower.h"
@@ -239,9 +240,8 @@ class PiZero final : public Model {
   void time_sinusoid(float time);     // into time_emb_
   void adarms_condition(float time);  // pi0.5: into cond_
   // pi0.5: what the time alone decides, for every item of every request: the expert's adaptive modulations
-  // (ActionExpert::adaptive_modulations), then the final norm's [scale | shift | gate]. The same layers run on the same
-  // vector as each step would, so the values are identical; kept per time (a sampler visits `steps` of them), which
-  // saves 37 weight-streaming matrix-vector products per step at full size.
+  // (ActionExpert::adaptive_modulations), then the final norm's [scale | shift | gate]; kept per time (37
+  // matrix-vector products per step at full size).
   Ptr<const float> time_modulations(float time);
   void ensure_buffers(int64_t batch, int64_t prefix_len);
   double flops(int64_t images, int64_t steps_run) const;
@@ -276,9 +276,7 @@ class PiZero final : public Model {
   backend::Array<uint8_t> prefix_mask_, state_mask_, action_mask_;
   KvCache cache_;
   backend::Array<float> x_t_, v_t_, suffix_x_, cat_, time_emb_, time_h_, cond_, mlp_h_, normed_;
-  std::map<uint32_t, backend::Array<float>> time_modulations_;  // by the time's float bits
-  backend::Array<float> time_modulation_scratch_;               // for times past kMaxKeptTimes
-  static constexpr std::size_t kMaxKeptTimes = 64;
+  KeptPerTime<uint32_t> time_modulations_;  // by the time's float bits
   int64_t images_run_ = 0;
 };
 
@@ -743,16 +741,12 @@ void PiZero::adarms_condition(float time) {
 Ptr<const float> PiZero::time_modulations(float time) {
   uint32_t key;
   std::memcpy(&key, &time, sizeof key);
-  if (const auto kept = time_modulations_.find(key); kept != time_modulations_.end()) return kept->second.at();
-  backend::Backend& be = *be_;
   const int64_t layers_size = expert_.modulation_size();
-  backend::Array<float> mod = be.alloc<float>(layers_size + 3 * expert_cfg_.hidden);
-  adarms_condition(time);
-  expert_.adaptive_modulations(be, cond_.at(), mod.at());
-  be.linear(*expert_norm_mod_, cond_.at(), 1, mod.at(layers_size));
-  if (time_modulations_.size() < kMaxKeptTimes) return time_modulations_.emplace(key, std::move(mod)).first->second.at();
-  time_modulation_scratch_ = std::move(mod);
-  return time_modulation_scratch_.at();
+  return time_modulations_.get(*be_, key, layers_size + 3 * expert_cfg_.hidden, [&](Ptr<float> mod) {
+    adarms_condition(time);
+    expert_.adaptive_modulations(*be_, cond_.at(), mod);
+    be_->linear(*expert_norm_mod_, cond_.at(), 1, mod + layers_size);
+  });
 }
 
 // One Euler step's velocity from x ([B, chunk, max_action_dim]) at `time`, into v (same layout).

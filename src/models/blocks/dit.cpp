@@ -164,19 +164,16 @@ void DiTStack::project_context(backend::Backend& be, Ptr<const float> context, i
 }
 
 Ptr<const float> DiTStack::time_modulation(backend::Backend& be, int64_t bucket) {
-  if (const auto kept = modulation_.find(bucket); kept != modulation_.end()) return kept->second.at();
   const int64_t D = cfg_.dim(), row = 2 * D, n = int64_t(blocks_.size()) + 1;
-  backend::Array<float> mod = be.alloc<float>(n * row);
-  // silu(temb) for one item: the batch shares its time.
-  if (silu_temb_.size() < D) silu_temb_ = be.alloc<float>(D);
-  time_embedding(be, bucket, 1, silu_temb_.at());
-  be.activate(silu_temb_.at(), D, Activation::silu);
-  for (std::size_t i = 0; i < blocks_.size(); ++i)
-    if (blocks_[i].adaptive) be.linear(*blocks_[i].ada, silu_temb_.at(), 1, mod.at(int64_t(i) * row));
-  be.linear(*proj_out_1_, silu_temb_.at(), 1, mod.at((n - 1) * row));
-  if (modulation_.size() < kMaxKeptBuckets) return modulation_.emplace(bucket, std::move(mod)).first->second.at();
-  modulation_scratch_ = std::move(mod);
-  return modulation_scratch_.at();
+  return modulation_.get(be, bucket, n * row, [&](Ptr<float> mod) {
+    // silu(temb) for one item: the batch shares its time.
+    if (silu_temb_.size() < D) silu_temb_ = be.alloc<float>(D);
+    time_embedding(be, bucket, 1, silu_temb_.at());
+    be.activate(silu_temb_.at(), D, Activation::silu);
+    for (std::size_t i = 0; i < blocks_.size(); ++i)
+      if (blocks_[i].adaptive) be.linear(*blocks_[i].ada, silu_temb_.at(), 1, mod + int64_t(i) * row);
+    be.linear(*proj_out_1_, silu_temb_.at(), 1, mod + (n - 1) * row);
+  });
 }
 
 void DiTStack::forward(backend::Backend& be, Ptr<float> x, int64_t batch, int64_t rows, int64_t bucket,

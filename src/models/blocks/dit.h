@@ -6,13 +6,13 @@
 #pragma once
 
 #include <cstdint>
-#include <map>
 #include <memory>
 #include <string>
 #include <vector>
 
 #include "backend/backend.h"
 #include "core/json_util.h"
+#include "models/blocks/kept_per_time.h"
 #include "models/weights.h"
 
 namespace tether::models {
@@ -95,13 +95,9 @@ class DiTStack {
   std::vector<float> host_sinusoid_;  // [256], reused by every step
 
   // What the timestep alone decides, for every item of every request: row i (2 * dim) is block i's [scale | shift],
-  // the last row the output norm's [shift | scale], each linear(silu(time embedding)). The same layers run on the
-  // same row as a per-request pass would, so the values are identical; kept per bucket (a sampler visits `steps` of
-  // them), which saves 33 weight-streaming matrix-vector products per step at GR00T's size.
+  // the last row the output norm's [shift | scale], each linear(silu(time embedding)); kept per bucket.
   backend::Ptr<const float> time_modulation(backend::Backend& be, int64_t bucket);
-  std::map<int64_t, backend::Array<float>> modulation_;
-  backend::Array<float> modulation_scratch_;  // for buckets past kMaxKeptBuckets
-  static constexpr std::size_t kMaxKeptBuckets = 64;
+  KeptPerTime<int64_t> modulation_;
 };
 
 // Layer-normed self-attention blocks with affine norms and no mask (GR00T N1.7's vl_self_attention).
