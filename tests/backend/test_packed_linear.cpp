@@ -90,6 +90,47 @@ TEST(PackedLinear, WritesIntoAWiderBuffer) {
   }
 }
 
+// oneDNN 2.6 runs a matmul it has no fast kernel for on its reference kernel, 10 to 100 times slower and silently:
+// a strided result did (GR00T's action encoder writes into half of a wider buffer), and only AVX-512 and AMX showed
+// it. Every model shape kind here, strided or not, must run on a real kernel, with the right result.
+TEST(PackedLinear, NoShapeRunsOnOneDnnsReferenceKernel) {
+  std::mt19937 g(11);
+  struct Shape {
+    int64_t m, n, k;
+  };
+  int checked = 0;
+  for (Precision prec : {Precision::fp32, Precision::bf16}) {
+    const LinearPath path = linear_path(prec);
+    if (path != LinearPath::onednn_f32 && path != LinearPath::onednn_bf16) continue;
+    for (const Shape s : {Shape{40, 1536, 132}, Shape{1, 1536, 132}, Shape{41, 132, 1024}, Shape{50, 1024, 32},
+                          Shape{3, 130, 33}, Shape{1, 7, 5}}) {
+      for (bool accumulate : {false, true}) {
+        const int64_t ldy = 2 * s.n;
+        const auto x = random_vec(std::size_t(s.m * s.k), g), w = random_vec(std::size_t(s.n * s.k), g);
+        const auto b = random_vec(std::size_t(s.n), g), y0 = random_vec(std::size_t(s.m * s.n), g);
+        PackedLinear lin;
+        lin.pack(w.data(), s.n, s.k, b.data(), prec);
+        const std::string kernel = lin.kernel(s.m, accumulate, ldy);
+        EXPECT_NE(kernel.rfind("ref", 0), 0u) << precision_name(prec) << " m=" << s.m << " n=" << s.n << " k=" << s.k
+                                              << " acc=" << accumulate << ": " << kernel;
+        std::vector<float> y(std::size_t(s.m * ldy), -7.f);
+        for (int64_t i = 0; i < s.m; ++i)
+          for (int64_t j = 0; j < s.n; ++j) y[i * ldy + j] = accumulate ? y0[i * s.n + j] : 123.f;
+        lin.forward(x.data(), s.m, y.data(), accumulate, ldy);
+        const auto want = reference(x, w, b, accumulate ? y0 : std::vector<float>{}, s.m, s.n, s.k, prec);
+        double diff = 0;
+        for (int64_t i = 0; i < s.m; ++i) {
+          for (int64_t j = 0; j < s.n; ++j) diff = std::max(diff, std::fabs(double(y[i * ldy + j]) - want[i * s.n + j]));
+          for (int64_t j = s.n; j < ldy; ++j) ASSERT_EQ(y[i * ldy + j], -7.f);  // columns past n untouched
+        }
+        EXPECT_LT(diff, 2e-5 * std::sqrt(double(s.k))) << precision_name(prec) << " m=" << s.m << " acc=" << accumulate;
+        ++checked;
+      }
+    }
+  }
+  if (checked == 0) GTEST_SKIP() << "no precision runs on oneDNN here (TETHER_FP32_GEMM=onednn puts fp32 there)";
+}
+
 TEST(PackedLinear, PathFollowsTheCpu) {
   // bf16 is native exactly where the (capped) CPU and oneDNN both have bf16 instructions; fp16 always widens.
   EXPECT_EQ(linear_path(Precision::fp32), cpu_paths().fp32_panel ? LinearPath::panel_f32 : LinearPath::onednn_f32);

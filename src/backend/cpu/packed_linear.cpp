@@ -4,7 +4,7 @@
 #include <algorithm>
 #include <cstring>
 #include <map>
-#include <tuple>
+#include <utility>
 #include <oneapi/dnnl/dnnl.hpp>
 #include <string>
 #include <vector>
@@ -107,17 +107,18 @@ struct PackedLinear::Impl {
   void pack_panels(const float* weight, const float* bias_in);
   struct Plan {
     dnnl::primitive prim;
+    std::string kernel;  // oneDNN's implementation name
     memory src, dst, scratchpad;
   };
-  mutable std::map<std::tuple<int64_t, bool, int64_t>, Plan> plans;  // (rows, accumulate, ldy) -> primitive
-  mutable std::vector<uint16_t> x_bf16;                    // bf16 copy of the input rows
+  mutable std::map<std::pair<int64_t, bool>, Plan> plans;  // (rows, accumulate) -> primitive
+  mutable std::vector<uint16_t> x_bf16;                     // bf16 copy of the input rows
+  mutable std::vector<float> y_dense;                       // the result rows, where the caller's are strided
 
   dt src_type() const { return path == LinearPath::onednn_bf16 ? dt::bf16 : dt::f32; }
 
-  dnnl::matmul::primitive_desc describe(int64_t m, const memory::desc& weights_md, bool accumulate,
-                                        int64_t ldy) const {
+  dnnl::matmul::primitive_desc describe(int64_t m, const memory::desc& weights_md, bool accumulate) const {
     const memory::desc src_md({m, k}, src_type(), tag::ab);
-    const memory::desc dst_md({m, n}, dt::f32, memory::dims{ldy, 1});
+    const memory::desc dst_md({m, n}, dt::f32, tag::ab);
     const memory::desc bias_md({1, n}, dt::f32, tag::ab);
     dnnl::primitive_attr attr;
     attr.set_scratchpad_mode(dnnl::scratchpad_mode::user);
@@ -129,13 +130,14 @@ struct PackedLinear::Impl {
     return dnnl::matmul::primitive_desc(dnnl::matmul::desc(src_md, weights_md, bias_md, dst_md), attr, cpu_engine());
   }
 
-  const Plan& plan(int64_t m, bool accumulate, int64_t ldy) const {
-    auto it = plans.find({m, accumulate, ldy});
+  const Plan& plan(int64_t m, bool accumulate) const {
+    auto it = plans.find({m, accumulate});
     if (it != plans.end()) return it->second;
     Plan p;
     try {
-      const auto pd = describe(m, weights.get_desc(), accumulate, ldy);
+      const auto pd = describe(m, weights.get_desc(), accumulate);
       p.prim = dnnl::matmul(pd);
+      p.kernel = pd.impl_info_str();
       p.src = memory(pd.src_desc(), cpu_engine(), DNNL_MEMORY_NONE);
       p.dst = memory(pd.dst_desc(), cpu_engine(), DNNL_MEMORY_NONE);
       p.scratchpad = memory(pd.scratchpad_desc(), cpu_engine());
@@ -143,8 +145,13 @@ struct PackedLinear::Impl {
       throw Error(ErrorCode::internal, "PackedLinear: oneDNN has no matmul for " + std::to_string(m) + " x [" +
                                            std::to_string(n) + ", " + std::to_string(k) + "]: " + e.what());
     }
-    return plans.emplace(std::make_tuple(m, accumulate, ldy), std::move(p)).first->second;
+    return plans.emplace(std::make_pair(m, accumulate), std::move(p)).first->second;
   }
+
+  // oneDNN 2.6's AVX-512 and AMX matmul kernels (brgemm) take only a dense result: with a row stride wider than the
+  // row it falls back to its reference kernel, 10 to 100 times slower. So every plan writes dense rows, and forward
+  // copies them out where the caller's are strided.
+  const Plan& plan_for(int64_t m, bool accumulate, int64_t /*ldy*/) const { return plan(m, accumulate); }
 };
 
 PackedLinear::PackedLinear() = default;
@@ -179,6 +186,11 @@ void PackedLinear::Impl::pack_panels(const float* weight, const float* bias_in) 
 }
 
 LinearPath PackedLinear::path() const { return impl_ ? impl_->path : LinearPath::onednn_f32; }
+std::string PackedLinear::kernel(int64_t m, bool accumulate, int64_t ldy) const {
+  if (!impl_) throw Error(ErrorCode::internal, "PackedLinear: kernel before pack");
+  if (!impl_->onednn()) return std::string("panel-") + detail::panel_kernel().name;
+  return impl_->plan_for(m, accumulate, ldy == 0 ? impl_->n : ldy).kernel;
+}
 int64_t PackedLinear::n() const { return impl_ ? impl_->n : 0; }
 int64_t PackedLinear::k() const { return impl_ ? impl_->k : 0; }
 
@@ -199,7 +211,7 @@ void PackedLinear::pack(const float* weight, int64_t n, int64_t k, const float* 
     const memory::desc user_md({k, n}, dt::f32, tag::ba);
     memory user(user_md, cpu_engine(), const_cast<float*>(weight));
     const memory::desc any_md({k, n}, impl->src_type(), tag::any);
-    const auto pd = impl->describe(kLayoutRows, any_md, false, n);
+    const auto pd = impl->describe(kLayoutRows, any_md, false);
     impl->weights = memory(pd.weights_desc(), cpu_engine());
     dnnl::reorder(user, impl->weights).execute(cpu_stream(), user, impl->weights);
     impl->bias = memory(memory::desc({1, n}, dt::f32, tag::ab), cpu_engine());
@@ -224,7 +236,7 @@ void PackedLinear::forward(const float* x, int64_t m, float* y, bool accumulate,
     w.panel_fn({x, m, w.k, w.k, panels, w.n, w.panel_bias.data(), y, ldy, accumulate});
     return;
   }
-  const Impl::Plan& p = w.plan(m, accumulate, ldy);
+  const Impl::Plan& p = w.plan_for(m, accumulate, ldy);
   const void* src = x;
   if (w.path == LinearPath::onednn_bf16) {
     if (w.x_bf16.size() < std::size_t(m * w.k)) w.x_bf16.resize(std::size_t(m * w.k));
@@ -234,8 +246,16 @@ void PackedLinear::forward(const float* x, int64_t m, float* y, bool accumulate,
     for (int64_t i = 0; i < total; ++i) dst[i] = f32_to_bf16(x[i]);
     src = dst;
   }
+  const bool strided = ldy != w.n;
+  float* dst = y;
+  if (strided) {
+    if (w.y_dense.size() < std::size_t(m * w.n)) w.y_dense.resize(std::size_t(m * w.n));
+    dst = w.y_dense.data();
+    if (accumulate)
+      for (int64_t r = 0; r < m; ++r) std::memcpy(dst + r * w.n, y + r * ldy, sizeof(float) * std::size_t(w.n));
+  }
   p.src.set_data_handle(const_cast<void*>(src));
-  p.dst.set_data_handle(y);
+  p.dst.set_data_handle(dst);
   // The C entry point takes the arguments as a plain array: no container is built per call.
   const dnnl_exec_arg_t args[] = {{DNNL_ARG_SRC, p.src.get()},
                                   {DNNL_ARG_WEIGHTS, w.weights.get()},
@@ -245,6 +265,8 @@ void PackedLinear::forward(const float* x, int64_t m, float* y, bool accumulate,
   const dnnl_status_t st = dnnl_primitive_execute(p.prim.get(), cpu_stream().get(), 5, args);
   if (st != dnnl_success)
     throw Error(ErrorCode::internal, "PackedLinear: oneDNN matmul failed with status " + std::to_string(int(st)));
+  if (strided)
+    for (int64_t r = 0; r < m; ++r) std::memcpy(y + r * ldy, dst + r * w.n, sizeof(float) * std::size_t(w.n));
 }
 
 }  // namespace tether::cpu

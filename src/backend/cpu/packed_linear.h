@@ -46,6 +46,10 @@ class PackedLinear {
   void forward(const float* x, int64_t m, float* y, bool accumulate = false, int64_t ldy = 0) const;
 
   LinearPath path() const;
+  // The kernel that forward(x, m, y, accumulate, ldy) runs: oneDNN's implementation name (e.g.
+  // "brg:avx512_core_amx_bf16"; "ref:any" would be its slow reference kernel) or "panel-avx512" / "panel-avx2" /
+  // "panel-portable".
+  std::string kernel(int64_t m, bool accumulate = false, int64_t ldy = 0) const;
   int64_t n() const;
   int64_t k() const;
   bool empty() const { return impl_ == nullptr; }
