@@ -120,10 +120,12 @@ TEST(PackedLinear, NoShapeRunsOnOneDnnsReferenceKernel) {
         const auto want = reference(x, w, b, accumulate ? y0 : std::vector<float>{}, s.m, s.n, s.k, prec);
         double diff = 0;
         for (int64_t i = 0; i < s.m; ++i) {
-          for (int64_t j = 0; j < s.n; ++j) diff = std::max(diff, std::fabs(double(y[i * ldy + j]) - want[i * s.n + j]));
+          for (int64_t j = 0; j < s.n; ++j)
+            diff = std::max(diff, std::fabs(double(y[i * ldy + j]) - want[i * s.n + j]));
           for (int64_t j = s.n; j < ldy; ++j) ASSERT_EQ(y[i * ldy + j], -7.f);  // columns past n untouched
         }
-        EXPECT_LT(diff, 2e-5 * std::sqrt(double(s.k))) << precision_name(prec) << " m=" << s.m << " acc=" << accumulate;
+        EXPECT_LT(diff, 2e-5 * std::sqrt(double(s.k)))
+            << precision_name(prec) << " m=" << s.m << " acc=" << accumulate;
         ++checked;
       }
     }

@@ -2,6 +2,7 @@
 #include "backend/cpu/panel_gemm.h"
 
 #include <algorithm>
+#include <vector>
 
 #include "core/dtype.h"
 
@@ -45,18 +46,15 @@ std::vector<float> pad_bias(const float* bias, int64_t n, int nr) {
   return out;
 }
 
-void gemm_fixed_order(int64_t m, int64_t n, int64_t k, const float* a, int64_t lda, const float* b, int64_t ldb,
-                      bool trans_b, float* c, int64_t ldc, const float* bias) {
-  if (m <= 0 || n <= 0) return;
-  const PanelKernel& kernel = panel_kernel();
-  const int64_t nr = kernel.panel_width, num_panels = (n + nr - 1) / nr;
-  thread_local std::vector<float> panels, padded_bias;
-  if (panels.size() < std::size_t(num_panels * nr * k)) panels.resize(std::size_t(num_panels * nr * k));
-  if (padded_bias.size() < std::size_t(num_panels * nr)) padded_bias.resize(std::size_t(num_panels * nr));
-  if (bias) std::copy(bias, bias + n, padded_bias.begin());
-  std::fill(padded_bias.begin() + (bias ? n : 0), padded_bias.end(), 0.0f);
+int64_t packed_b_floats(int64_t n, int64_t k) {
+  const int64_t nr = panel_kernel().panel_width;
+  return (n + nr - 1) / nr * nr * k;
+}
+
+void pack_b_panels(int64_t n, int64_t k, const float* b, int64_t ldb, bool trans_b, float* panels) {
+  const int64_t nr = panel_kernel().panel_width, num_panels = (n + nr - 1) / nr;
   for (int64_t p = 0; p < num_panels; ++p) {
-    float* dst = panels.data() + p * k * nr;
+    float* dst = panels + p * k * nr;
     const int64_t cols = std::min(nr, n - p * nr);
     for (int64_t q = 0; q < k; ++q) {
       float* row = dst + q * nr;
@@ -68,6 +66,36 @@ void gemm_fixed_order(int64_t m, int64_t n, int64_t k, const float* a, int64_t l
       std::fill(row + cols, row + nr, 0.0f);
     }
   }
+}
+
+namespace {
+// Zeros for the products without a bias: the kernel always adds one, padded to whole panels.
+const float* zero_bias(int64_t n, int64_t nr) {
+  thread_local std::vector<float> zeros;
+  const std::size_t need = std::size_t((n + nr - 1) / nr * nr);
+  if (zeros.size() < need) zeros.assign(need, 0.0f);
+  return zeros.data();
+}
+}  // namespace
+
+void gemm_packed_b(int64_t m, int64_t n, int64_t k, const float* a, int64_t lda, const float* panels, float* c,
+                   int64_t ldc) {
+  if (m <= 0 || n <= 0) return;
+  const PanelKernel& kernel = panel_kernel();
+  kernel.f32({a, m, k, lda, panels, n, zero_bias(n, kernel.panel_width), c, ldc, false});
+}
+
+void gemm_fixed_order(int64_t m, int64_t n, int64_t k, const float* a, int64_t lda, const float* b, int64_t ldb,
+                      bool trans_b, float* c, int64_t ldc, const float* bias) {
+  if (m <= 0 || n <= 0) return;
+  const PanelKernel& kernel = panel_kernel();
+  const int64_t nr = kernel.panel_width;
+  thread_local std::vector<float> panels, padded_bias;
+  if (panels.size() < std::size_t(packed_b_floats(n, k))) panels.resize(std::size_t(packed_b_floats(n, k)));
+  pack_b_panels(n, k, b, ldb, trans_b, panels.data());
+  if (!bias) return kernel.f32({a, m, k, lda, panels.data(), n, zero_bias(n, nr), c, ldc, false});
+  padded_bias.assign(std::size_t((n + nr - 1) / nr * nr), 0.0f);  // within its capacity after the first call
+  std::copy(bias, bias + n, padded_bias.begin());
   kernel.f32({a, m, k, lda, panels.data(), n, padded_bias.data(), c, ldc, false});
 }
 

@@ -53,6 +53,14 @@ std::vector<float> pad_bias(const float* bias, int64_t n, int panel_width);
 void gemm_fixed_order(int64_t m, int64_t n, int64_t k, const float* a, int64_t lda, const float* b, int64_t ldb,
                       bool trans_b, float* c, int64_t ldc, const float* bias = nullptr);
 
+// gemm_fixed_order in two halves, for a B that several products share (attention's K and V, shared by every block
+// of queries and every head of a group): pack it once, then multiply by the packed panels as often as needed. The
+// results are bit-identical to gemm_fixed_order's. `panels` holds packed_b_floats(n, k) floats.
+int64_t packed_b_floats(int64_t n, int64_t k);
+void pack_b_panels(int64_t n, int64_t k, const float* b, int64_t ldb, bool trans_b, float* panels);
+void gemm_packed_b(int64_t m, int64_t n, int64_t k, const float* a, int64_t lda, const float* panels, float* c,
+                   int64_t ldc);
+
 // The widest kernel the (capped) CPU runs.
 const PanelKernel& panel_kernel();
 // Every kernel this CPU can run, widest first (for tests that compare them).
