@@ -43,9 +43,11 @@ checkpoint="${checkpoint:-$cache/checkpoints/$family-full-random}"
 
 scripts/setup.sh release >/dev/null
 # Under the AVX2 cap the reference is capped too (PyTorch's CPU matmuls go through MKL and oneDNN), so both engines
-# run what an AVX2-only CPU would.
+# run what an AVX2-only CPU would; so is OpenBLAS, one of the candidates for the GEMM peak (it picks AVX-512 kernels on
+# the CPUs it knows, which would put the AVX2 floor out of reach).
 if [ "${TETHER_MAX_CPU_ISA:-}" != "" ] && [ "${TETHER_MAX_CPU_ISA^^}" = AVX2 ]; then
-  export ONEDNN_MAX_CPU_ISA="${ONEDNN_MAX_CPU_ISA:-AVX2}" MKL_ENABLE_INSTRUCTIONS="${MKL_ENABLE_INSTRUCTIONS:-AVX2}"
+  export ONEDNN_MAX_CPU_ISA="${ONEDNN_MAX_CPU_ISA:-AVX2}" MKL_ENABLE_INSTRUCTIONS="${MKL_ENABLE_INSTRUCTIONS:-AVX2}" \
+    OPENBLAS_CORETYPE="${OPENBLAS_CORETYPE:-Haswell}"
 fi
 tools/oracle/setup.sh >/dev/null
 if [ "$family" = gr00t_n17 ] && [ ! -d "$HF_HUB_CACHE/models--nvidia--Cosmos-Reason2-2B" ]; then
