@@ -247,15 +247,15 @@ void PackedLinear::forward(const float* x, int64_t m, float* y, bool accumulate,
     src = dst;
   }
   const bool strided = ldy != w.n;
-  float* dst = y;
+  float* out = y;
   if (strided) {
     if (w.y_dense.size() < std::size_t(m * w.n)) w.y_dense.resize(std::size_t(m * w.n));
-    dst = w.y_dense.data();
+    out = w.y_dense.data();
     if (accumulate)
-      for (int64_t r = 0; r < m; ++r) std::memcpy(dst + r * w.n, y + r * ldy, sizeof(float) * std::size_t(w.n));
+      for (int64_t r = 0; r < m; ++r) std::memcpy(out + r * w.n, y + r * ldy, sizeof(float) * std::size_t(w.n));
   }
   p.src.set_data_handle(const_cast<void*>(src));
-  p.dst.set_data_handle(dst);
+  p.dst.set_data_handle(out);
   // The C entry point takes the arguments as a plain array: no container is built per call.
   const dnnl_exec_arg_t args[] = {{DNNL_ARG_SRC, p.src.get()},
                                   {DNNL_ARG_WEIGHTS, w.weights.get()},
@@ -266,7 +266,7 @@ void PackedLinear::forward(const float* x, int64_t m, float* y, bool accumulate,
   if (st != dnnl_success)
     throw Error(ErrorCode::internal, "PackedLinear: oneDNN matmul failed with status " + std::to_string(int(st)));
   if (strided)
-    for (int64_t r = 0; r < m; ++r) std::memcpy(y + r * ldy, dst + r * w.n, sizeof(float) * std::size_t(w.n));
+    for (int64_t r = 0; r < m; ++r) std::memcpy(y + r * ldy, out + r * w.n, sizeof(float) * std::size_t(w.n));
 }
 
 }  // namespace tether::cpu
