@@ -383,6 +383,22 @@ TEST(Attention, SameResultInsideAParallelRegion) {
   EXPECT_EQ(0, std::memcmp(ref.data(), inner.data(), ref.size() * sizeof(float)));
 }
 
+TEST(Attention, ABatchPackedInSeveralRunsGivesEachItemsOwnResult) {
+  // 3 items x 12 K/V heads at 600 keys are more packed panels than attention holds at once (8 MB), so it packs and
+  // runs them in turns: each item's result must still be the one it gets alone, bit for bit.
+  const int64_t b = 3, len = 600, h = 12, d = 64, stride = h * d;
+  auto q = random_vec(std::size_t(b * len * stride), 51), k = random_vec(std::size_t(b * len * stride), 52);
+  auto v = random_vec(std::size_t(b * len * stride), 53);
+  std::vector<float> all(q.size()), one(std::size_t(len * stride));
+  attention(q.data(), stride, k.data(), v.data(), stride, nullptr, b, len, len, h, h, d, 0.125f, all.data());
+  for (int64_t i = 0; i < b; ++i) {
+    const std::size_t at = std::size_t(i * len * stride);
+    attention(q.data() + at, stride, k.data() + at, v.data() + at, stride, nullptr, 1, len, len, h, h, d, 0.125f,
+              one.data());
+    EXPECT_EQ(0, std::memcmp(one.data(), all.data() + at, one.size() * sizeof(float))) << "item " << i;
+  }
+}
+
 TEST(Attention, RejectsBadHeadsAndStrides) {
   std::vector<float> buf(1024);
   expect_invalid([&] {

@@ -19,6 +19,9 @@ namespace {
 // Rows of queries per task: a block's scores (128 x 1024 for SigLIP at 512 px) stay in L2.
 constexpr int64_t kQueryBlock = 128;
 
+// Packed K and V held at once, in floats (8 MB): 16 SigLIP heads at 1024 tokens, whatever the batch.
+constexpr int64_t kMaxPackedFloats = int64_t(2) << 20;
+
 // The message is built only on failure: this runs inside the denoise loop, which must not allocate.
 template <typename Message>
 void require(bool ok, Message&& what) {
@@ -48,58 +51,63 @@ void attention(const float* q, int64_t q_stride, const float* k, const float* v,
   // trades the scores' cache footprint against parallelism.
   const int64_t block = std::min<int64_t>(len_q, kQueryBlock);
   const int64_t blocks = (len_q + block - 1) / block;
-  const int64_t tasks = batch * heads * blocks;
-  const bool parallel = tasks > 1 && batch * heads * len_q * len_k * head_dim >= (1 << 16);
+  const bool parallel = batch * heads * blocks > 1 && batch * heads * len_q * len_k * head_dim >= (1 << 16);
   constexpr float kMasked = std::numeric_limits<float>::lowest();
 
-  // K^T (len_k columns over head_dim) and V (head_dim columns over len_k) of every (item, K/V head), packed once.
+  // K^T (len_k columns over head_dim) and V (head_dim columns over len_k) of each (item, K/V head), packed once.
+  // The (item, K/V head) pairs go in runs whose panels fit kMaxPackedFloats, so a large batch does not hold all of
+  // them at once.
   const int64_t k_floats = detail::packed_b_floats(len_k, head_dim);
-  const int64_t v_floats = detail::packed_b_floats(head_dim, len_k);
-  const int64_t kv_count = batch * kv_heads;
+  const int64_t pair_floats = k_floats + detail::packed_b_floats(head_dim, len_k);
+  const int64_t pairs = batch * kv_heads;
+  const int64_t run = std::clamp<int64_t>(kMaxPackedFloats / pair_floats, 1, pairs);
   thread_local std::vector<float> packed;  // the calling thread's; grows once, then reused
-  if (packed.size() < std::size_t(kv_count * (k_floats + v_floats)))
-    packed.resize(std::size_t(kv_count * (k_floats + v_floats)));
+  if (packed.size() < std::size_t(run * pair_floats)) packed.resize(std::size_t(run * pair_floats));
   float* const packed_kv = packed.data();
 
+  for (int64_t g0 = 0; g0 < pairs; g0 += run) {
+    const int64_t g1 = std::min(pairs, g0 + run);
+    const int64_t tasks = (g1 - g0) * groups * blocks;
 #pragma omp parallel if (parallel)
-  {
+    {
 #pragma omp for schedule(static)
-    for (int64_t g = 0; g < kv_count; ++g) {
-      const int64_t b = g / kv_heads, kh = g % kv_heads;
-      float* kp = packed_kv + g * (k_floats + v_floats);
-      detail::pack_b_panels(len_k, head_dim, k + b * len_k * kv_stride + kh * head_dim, kv_stride, /*trans_b=*/true,
-                            kp);
-      detail::pack_b_panels(head_dim, len_k, v + b * len_k * kv_stride + kh * head_dim, kv_stride, /*trans_b=*/false,
-                            kp + k_floats);
-    }
-#pragma omp for schedule(dynamic)
-    for (int64_t task = 0; task < tasks; ++task) {
-      const int64_t b = task / (heads * blocks);
-      const int64_t h = (task / blocks) % heads;
-      const int64_t q0 = (task % blocks) * block;
-      const int rows = int(std::min(block, len_q - q0));
-      // Scores for one block, reused across calls; a product inside the parallel region runs single-threaded.
-      thread_local std::vector<float> scores;
-      if (scores.size() < std::size_t(block * len_k)) scores.resize(std::size_t(block * len_k));
-      float* s = scores.data();
-      const float* qp = q + (b * len_q + q0) * q_stride + h * head_dim;
-      const float* kp = packed_kv + (b * kv_heads + h / groups) * (k_floats + v_floats);
-      detail::gemm_packed_b(rows, len_k, head_dim, qp, q_stride, kp, s, len_k);
-      for (int r = 0; r < rows; ++r) {
-        float* sr = s + r * len_k;
-        // The scale multiplies the finished dot products (not q), as upstream does.
-        const uint8_t* mr = mask ? mask + (b * len_q + q0 + r) * len_k : nullptr;
-        if (mr) {
-#pragma omp simd
-          for (int64_t j = 0; j < len_k; ++j) sr[j] = mr[j] ? sr[j] * scale : kMasked;
-        } else {
-#pragma omp simd
-          for (int64_t j = 0; j < len_k; ++j) sr[j] = sr[j] * scale;
-        }
-        softmax_row(sr, len_k, mr);
+      for (int64_t g = g0; g < g1; ++g) {
+        const int64_t b = g / kv_heads, kh = g % kv_heads;
+        float* kp = packed_kv + (g - g0) * pair_floats;
+        const int64_t offset = b * len_k * kv_stride + kh * head_dim;
+        detail::pack_b_panels(len_k, head_dim, k + offset, kv_stride, /*trans_b=*/true, kp);
+        detail::pack_b_panels(head_dim, len_k, v + offset, kv_stride, /*trans_b=*/false, kp + k_floats);
       }
-      float* o = out + (b * len_q + q0) * out_stride + h * head_dim;
-      detail::gemm_packed_b(rows, head_dim, len_k, s, len_k, kp + k_floats, o, out_stride);
+#pragma omp for schedule(dynamic)
+      for (int64_t task = 0; task < tasks; ++task) {
+        const int64_t g = g0 + task / (groups * blocks);
+        const int64_t b = g / kv_heads;
+        const int64_t h = (g % kv_heads) * groups + (task / blocks) % groups;
+        const int64_t q0 = (task % blocks) * block;
+        const int rows = int(std::min(block, len_q - q0));
+        // Scores for one block, reused across calls; a product inside the parallel region runs single-threaded.
+        thread_local std::vector<float> scores;
+        if (scores.size() < std::size_t(block * len_k)) scores.resize(std::size_t(block * len_k));
+        float* s = scores.data();
+        const float* qp = q + (b * len_q + q0) * q_stride + h * head_dim;
+        const float* kp = packed_kv + (g - g0) * pair_floats;
+        detail::gemm_packed_b(rows, len_k, head_dim, qp, q_stride, kp, s, len_k);
+        for (int r = 0; r < rows; ++r) {
+          float* sr = s + r * len_k;
+          // The scale multiplies the finished dot products (not q), as upstream does.
+          const uint8_t* mr = mask ? mask + (b * len_q + q0 + r) * len_k : nullptr;
+          if (mr) {
+#pragma omp simd
+            for (int64_t j = 0; j < len_k; ++j) sr[j] = mr[j] ? sr[j] * scale : kMasked;
+          } else {
+#pragma omp simd
+            for (int64_t j = 0; j < len_k; ++j) sr[j] = sr[j] * scale;
+          }
+          softmax_row(sr, len_k, mr);
+        }
+        float* o = out + (b * len_q + q0) * out_stride + h * head_dim;
+        detail::gemm_packed_b(rows, head_dim, len_k, s, len_k, kp + k_floats, o, out_stride);
+      }
     }
   }
 }
