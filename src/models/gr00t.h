@@ -48,6 +48,13 @@ Gr00tEmbodiment read_gr00t_embodiment(const std::filesystem::path& dir, const st
 // instruction is "Perform the task." first.
 std::string gr00t_formalize_language(const std::string& instruction, bool formalize);
 
+// N1.6's prompt as Isaac-GR00T renders it: the Eagle chat template over one user turn holding the (formalised)
+// language then each image, whose "<image-k>" placeholder the Eagle processor expands to "<image k><img>", one
+// <IMG_CONTEXT> per projected token, "</img>". A resized frame of height x width has (height / 28) * (width / 28)
+// such tokens (patch 14, then the 2x2 pixel unshuffle).
+int64_t gr00t_n16_image_tokens(int64_t height, int64_t width);
+std::string gr00t_n16_prompt(const std::string& language, const std::vector<int64_t>& image_tokens);
+
 // lerobot's N1.7 decode step, for the `libero_sim` tag only, maps the gripper group g to -sign(2g - 1) after
 // unnormalising (the LIBERO simulator's open/close convention). Tether serves robot units and leaves that mapping to
 // the client; comparisons with lerobot's decoded actions apply it to Tether's. `actions` is [rows, action_dim].

@@ -262,17 +262,9 @@ Gr00tModel::Backbone Gr00tN16::encode_backbone(const ModelInput& in, int64_t ite
                                                    "' (GR00T needs every camera of its embodiment)");
     frames.push_back(vision::eagle_preprocess_frame(it->second, geometry_));
   }
-  // The prompt as Isaac-GR00T's processor renders it: a system turn, then the user turn with the instruction first
-  // and each image as "<image k><img>" + one <IMG_CONTEXT> per projected token + "</img>".
-  std::string prompt = "<|im_start|>system\nYou are a helpful assistant.<|im_end|>\n<|im_start|>user\n" +
-                       gr00t_formalize_language(in.instruction, formalize_);
-  for (std::size_t k = 0; k < frames.size(); ++k) {
-    const int64_t tokens = int64_t(frames[k].image.height / 28) * (frames[k].image.width / 28);
-    prompt += "<image " + std::to_string(k + 1) + "><img>";
-    for (int64_t t = 0; t < tokens; ++t) prompt += "<IMG_CONTEXT>";
-    prompt += "</img>";
-  }
-  prompt += "<|im_end|>\n";
+  std::vector<int64_t> image_tokens;
+  for (const auto& f : frames) image_tokens.push_back(gr00t_n16_image_tokens(f.image.height, f.image.width));
+  const std::string prompt = gr00t_n16_prompt(gr00t_formalize_language(in.instruction, formalize_), image_tokens);
   const std::vector<int32_t> ids = tokenizer_->tokenizer.encode(prompt, false);
   const int64_t L = int64_t(ids.size()), D = text_cfg_.hidden;
   if (dumping()) {
@@ -285,7 +277,7 @@ Gr00tModel::Backbone Gr00tN16::encode_backbone(const ModelInput& in, int64_t ite
   t0 = std::chrono::steady_clock::now();
   const int64_t C = vision_.hidden(), C4 = 4 * C, P = 14;
   int64_t rows_total = 0;
-  for (const auto& f : frames) rows_total += int64_t(f.image.height / 28) * (f.image.width / 28);
+  for (const auto& f : frames) rows_total += gr00t_n16_image_tokens(f.image.height, f.image.width);
   grow(be, image_rows_, rows_total * D);
   int64_t row = 0;
   for (std::size_t k = 0; k < frames.size(); ++k) {
@@ -336,6 +328,18 @@ Gr00tModel::Backbone Gr00tN16::encode_backbone(const ModelInput& in, int64_t ite
 }
 
 }  // namespace
+
+int64_t gr00t_n16_image_tokens(int64_t height, int64_t width) { return (height / 28) * (width / 28); }
+
+std::string gr00t_n16_prompt(const std::string& language, const std::vector<int64_t>& image_tokens) {
+  std::string prompt = "<|im_start|>system\nYou are a helpful assistant.<|im_end|>\n<|im_start|>user\n" + language;
+  for (std::size_t k = 0; k < image_tokens.size(); ++k) {
+    prompt += "<image " + std::to_string(k + 1) + "><img>";
+    for (int64_t t = 0; t < image_tokens[k]; ++t) prompt += "<IMG_CONTEXT>";
+    prompt += "</img>";
+  }
+  return prompt + "<|im_end|>\n";
+}
 
 std::unique_ptr<Model> load_gr00t_n16(const fs::path& dir, const Json& config, TensorStore weights,
                                       const LoadOptions& options) {

@@ -357,10 +357,49 @@ struct LoadedTokenizer {
   std::string source;
 };
 
-// The tokenizer from tokenizer.json (has_json) or else tokenizer.model, with `config` standing for
-// tokenizer_config.json (`config_path` names it in errors).
-LoadedTokenizer load_tokenizer_files(const std::string& json_path, bool has_json, const std::string& model_path,
-                                     const Json& config, const std::string& config_path) {
+// The files a tokenizer directory holds its vocabulary in, in the order transformers prefers them.
+enum class VocabFiles {
+  tokenizer_json,  // tokenizer.json
+  sentencepiece,   // tokenizer.model
+  vocab_merges,    // vocab.json + merges.txt, as Qwen2Tokenizer saves itself (GR00T N1.6's Eagle directory)
+};
+
+// vocab.json and merges.txt as the tokenizers crate reads them into a BPE model: "#version" lines
+// skipped, every other line exactly two symbols separated by one space, ranked by line order.
+Json json_from_vocab_merges(const std::string& vocab_path, const std::string& merges_path) {
+  Json vocab = read_json_file<Json>(vocab_path);
+  if (!vocab.is_object()) throw Error(ErrorCode::format, vocab_path + ": top level is not an object");
+  std::ifstream in(merges_path, std::ios::binary);
+  if (!in) throw Error(ErrorCode::not_found, merges_path + ": cannot be opened");
+  Json merges = Json::array();
+  std::string line;
+  for (std::size_t number = 1; std::getline(in, line); ++number) {
+    if (!line.empty() && line.back() == '\r') line.pop_back();
+    if (line.rfind("#version", 0) == 0) continue;
+    const std::size_t space = line.find(' ');
+    if (space == std::string::npos || space == 0 || space + 1 == line.size() ||
+        line.find(' ', space + 1) != std::string::npos)
+      throw Error(ErrorCode::format, merges_path + ": line " + std::to_string(number) +
+                                         " is not two symbols separated by one space");
+    merges.push_back(Json::array({line.substr(0, space), line.substr(space + 1)}));
+  }
+  if (in.bad()) throw Error(ErrorCode::format, merges_path + ": read error");
+  return Json{{"model", {{"type", "BPE"}, {"vocab", std::move(vocab)}, {"merges", std::move(merges)}}}};
+}
+
+// Where the vocabulary is: `path` is tokenizer.json, tokenizer.model or vocab.json (then with `merges_path`).
+struct VocabSource {
+  VocabFiles files;
+  std::string path, merges_path;
+};
+
+// The tokenizer from `vocab`, with `config` standing for tokenizer_config.json (`config_path` names it in errors).
+LoadedTokenizer load_tokenizer_files(const VocabSource& vocab, const Json& config, const std::string& config_path) {
+  const VocabFiles files = vocab.files;
+  const std::string& json_path = vocab.path;
+  const std::string& model_path = vocab.path;
+  const std::string& vocab_path = vocab.path;
+  const bool has_json = files == VocabFiles::tokenizer_json;
   BuildOptions opt;
   std::string cls = json_get_or<std::string>(config, "tokenizer_class", "", config_path);
   std::string base = cls;
@@ -381,21 +420,31 @@ LoadedTokenizer load_tokenizer_files(const std::string& json_path, bool has_json
                 config_path + ": tokenizer_class '" + cls +
                     "' is not supported (transformers rebuilds it in a class-specific way)");
   }
+  const std::string class_named =
+      cls.empty() ? "no tokenizer_class in " + config_path : "tokenizer_class is '" + cls + "'";
   // Without tokenizer.json transformers converts tokenizer.model in a class-specific way; Tether
   // follows GemmaTokenizer's conversion only.
-  if (!has_json && !gemma)
-    throw Error(ErrorCode::unsupported,
-                model_path +
-                    ": a SentencePiece model without tokenizer.json is only supported for " +
-                    "tokenizer_class GemmaTokenizer (" +
-                    (cls.empty() ? "no tokenizer_class in " + config_path
-                                 : "tokenizer_class is '" + cls + "'") +
-                    ")");
-  const std::string source = has_json ? json_path : model_path;
+  if (files == VocabFiles::sentencepiece && !gemma)
+    throw Error(ErrorCode::unsupported, model_path +
+                                            ": a SentencePiece model without tokenizer.json is only supported for " +
+                                            "tokenizer_class GemmaTokenizer (" + class_named + ")");
+  // vocab.json + merges.txt go into the class's own pipeline; Tether knows Qwen2Tokenizer's. Its added tokens
+  // come from added_tokens_decoder (transformers reads added_tokens.json only for configs without one).
+  if (files == VocabFiles::vocab_merges) {
+    if (!qwen2)
+      throw Error(ErrorCode::unsupported, vocab_path + ": vocab.json and merges.txt without tokenizer.json are " +
+                                              "only supported for tokenizer_class Qwen2Tokenizer (" + class_named +
+                                              ")");
+    if (auto it = config.find("added_tokens_decoder"); it == config.end() || it->is_null())
+      throw Error(ErrorCode::unsupported, config_path + ": vocab.json and merges.txt without tokenizer.json need " +
+                                              "added_tokens_decoder (the legacy added_tokens.json is not read)");
+  }
+  const std::string& source = vocab.path;
   std::vector<AddedToken> spm_added;
-  const Json root = has_json
-                        ? read_json_file<Json>(json_path)
-                        : json_from_sentencepiece(read_sentencepiece_model(model_path), spm_added);
+  const Json root = files == VocabFiles::tokenizer_json  ? read_json_file<Json>(json_path)
+                    : files == VocabFiles::sentencepiece ? json_from_sentencepiece(read_sentencepiece_model(model_path),
+                                                                                   spm_added)
+                                                         : json_from_vocab_merges(vocab_path, vocab.merges_path);
 
   // Named special tokens: the config's, else the class defaults (GemmaTokenizer.__init__'s).
   std::vector<std::pair<std::string, AddedToken>> named;
@@ -474,7 +523,7 @@ LoadedTokenizer load_tokenizer_files(const std::string& json_path, bool has_json
       for (auto& [id, t] : by_id) added.push_back(std::move(t));
     }
   }
-  if (!has_json) {
+  if (files == VocabFiles::sentencepiece) {
     // The converted model's control and user-defined pieces, then the config's tokens. The named
     // and extra special tokens are registered again as special, which marks those pieces special.
     for (AddedToken& t : spm_added)
@@ -513,7 +562,7 @@ LoadedTokenizer load_tokenizer_files(const std::string& json_path, bool has_json
     return std::nullopt;
   };
   if (!has_json) {
-    // No post-processor in the file: transformers builds one from add_bos_token / add_eos_token
+    // No post-processor in any file: transformers builds one from add_bos_token / add_eos_token
     // (both false when absent). With tokenizer.json it drops those flags and keeps the file's.
     auto flagged = [&](const char* flag,
                        const char* key) -> std::optional<std::pair<std::string, int32_t>> {
@@ -545,19 +594,25 @@ LoadedTokenizer load_tokenizer_files(const std::string& json_path, bool has_json
 
 PretrainedTokenizer load_pretrained_tokenizer(const std::string& dir) {
   namespace fs = std::filesystem;
-  const std::string json_path = dir + "/tokenizer.json";
-  const std::string model_path = dir + "/tokenizer.model";
   const std::string config_path = dir + "/tokenizer_config.json";
   std::error_code ec;
-  const bool has_json = fs::exists(json_path, ec), has_model = fs::exists(model_path, ec);
-  if (!has_json && !has_model)
-    throw Error(ErrorCode::not_found,
-                dir + ": no tokenizer.json or tokenizer.model (" + json_path + " not found)");
+  auto present = [&](const char* name) { return fs::exists(dir + "/" + name, ec); };
+  VocabSource vocab;
+  if (present("tokenizer.json")) {
+    vocab = {VocabFiles::tokenizer_json, dir + "/tokenizer.json", ""};
+  } else if (present("tokenizer.model")) {
+    vocab = {VocabFiles::sentencepiece, dir + "/tokenizer.model", ""};
+  } else if (present("vocab.json") && present("merges.txt")) {
+    vocab = {VocabFiles::vocab_merges, dir + "/vocab.json", dir + "/merges.txt"};
+  } else {
+    throw Error(ErrorCode::not_found, dir + ": no tokenizer.json or tokenizer.model (nor vocab.json with merges.txt; " +
+                                          dir + "/tokenizer.json not found)");
+  }
   Json config = Json::object();
   if (fs::exists(config_path, ec)) config = read_json_file<Json>(config_path);
   if (!config.is_object())
     throw Error(ErrorCode::format, config_path + ": top level is not an object");
-  LoadedTokenizer t = load_tokenizer_files(json_path, has_json, model_path, config, config_path);
+  LoadedTokenizer t = load_tokenizer_files(vocab, config, config_path);
   return {Tokenizer(t.impl), t.tokenizer_class, t.defaults, t.bos_token_id, t.eos_token_id, t.pad_token_id, t.source};
 }
 
@@ -565,7 +620,7 @@ PretrainedTokenizer load_gemma_sentencepiece(const std::string& model_path) {
   std::error_code ec;
   if (!std::filesystem::exists(model_path, ec)) throw Error(ErrorCode::not_found, model_path + ": not found");
   const Json config = {{"tokenizer_class", "GemmaTokenizer"}};
-  LoadedTokenizer t = load_tokenizer_files("", false, model_path, config,
+  LoadedTokenizer t = load_tokenizer_files({VocabFiles::sentencepiece, model_path, ""}, config,
                                            model_path + " (read as a GemmaTokenizer without tokenizer_config.json)");
   return {Tokenizer(t.impl), t.tokenizer_class, t.defaults, t.bos_token_id, t.eos_token_id, t.pad_token_id, t.source};
 }

@@ -94,21 +94,25 @@ BatchEncoding encode_batch(const Tokenizer& tokenizer, const std::vector<std::st
 // A directory with tokenizer.model and no tokenizer.json is converted as transformers'
 // GemmaTokenizer does it (vocabulary = the pieces, merges from generate_merges, control and
 // user-defined pieces as added tokens, the post-processor from add_bos_token / add_eos_token);
-// for any other class it is ErrorCode::unsupported.
+// for any other class it is ErrorCode::unsupported. A directory with neither, but vocab.json and
+// merges.txt (the files Qwen2Tokenizer saves, as in GR00T N1.6's Eagle directory), is read for
+// Qwen2Tokenizer only, with its added tokens from added_tokens_decoder and the post-processor from
+// add_bos_token / add_eos_token.
 // Named special tokens of the config (bos/eos/unk/sep/pad/cls/mask, GemmaTokenizer's defaults when
 // absent) missing from the added tokens are added as special tokens, as transformers does;
 // add_bos_token / add_eos_token are ignored when tokenizer.json exists, as transformers drops them
 // then. Only the tokenizer_class route is followed: the shortcut transformers takes for model
 // types it maps to another class is not (SmolVLM's "smolvlm" and PaliGemma's "paligemma" types are
 // not mapped, so this is their real route).
-// Errors name the file: ErrorCode::not_found when neither tokenizer file exists, format for a
-// corrupt tokenizer.json / tokenizer.model / tokenizer_config.json, unsupported as above.
+// Errors name the file: ErrorCode::not_found when no vocabulary file exists, format for a corrupt
+// tokenizer.json / tokenizer.model / vocab.json / merges.txt / tokenizer_config.json, unsupported
+// as above.
 struct PretrainedTokenizer {
   Tokenizer tokenizer;
   std::string tokenizer_class;  // "" without tokenizer_config.json
   BatchOptions defaults;        // padding/truncation side and pad id from the config; max_length 0
   std::optional<int32_t> bos_token_id, eos_token_id, pad_token_id;
-  std::string source;  // the file the vocabulary came from: <dir>/tokenizer.json or tokenizer.model
+  std::string source;  // the file the vocabulary came from: <dir>/tokenizer.json, tokenizer.model or vocab.json
 };
 PretrainedTokenizer load_pretrained_tokenizer(const std::string& dir);
 

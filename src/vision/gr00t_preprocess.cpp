@@ -578,8 +578,11 @@ ResizedSize eagle_smart_resize(int h, int w) {
 }
 
 EagleFrame eagle_preprocess_frame(const Image& frame, const Gr00tImageGeometry& geometry) {
+  return eagle_process_image(gr00t_geometry_albumentations(frame, geometry));
+}
+
+EagleFrame eagle_process_image(const Image& shaped) {
   EagleFrame f;
-  const Image shaped = gr00t_geometry_albumentations(frame, geometry);
   const ResizedSize s = eagle_smart_resize(shaped.height, shaped.width);
   f.image = resize_bicubic_pil(shaped, s.height, s.width);
   const int64_t H = f.image.height, W = f.image.width, plane = H * W;

@@ -150,4 +150,7 @@ struct EagleFrame {
 // the Eagle fetch_image (smart_resize + Pillow bicubic) and the image processor's normalisation.
 EagleFrame eagle_preprocess_frame(const Image& frame, const Gr00tImageGeometry& geometry);
 
+// The Eagle processor's part alone (fetch_image and the image processor), for a frame already through the geometry.
+EagleFrame eagle_process_image(const Image& shaped);
+
 }  // namespace tether::vision

@@ -12,6 +12,7 @@
 #include <cstdio>
 #include <cstdlib>
 #include <filesystem>
+#include <fstream>
 #include <map>
 
 #include "backend/backend.h"
@@ -21,6 +22,9 @@
 #include "models/gr00t.h"
 #include "models/weights.h"
 #include "policy/policy.h"
+#include "text/tokenizer.h"
+#include "vision/gr00t_preprocess.h"
+#include "vision/image.h"
 #include "eagle_hub.h"
 
 using namespace tether;
@@ -30,7 +34,9 @@ namespace {
 
 const fs::path kRoot = fs::path(TETHER_FIXTURES_DIR) / "gr00t_n16";
 
-void use_eagle_hub() { ::setenv("HF_HUB_CACHE", tether::testing::eagle_hub_cache().c_str(), 1); }
+void use_eagle_hub(bool as_released = false) {
+  ::setenv("HF_HUB_CACHE", tether::testing::eagle_hub_cache(as_released).c_str(), 1);
+}
 
 double max_abs(const std::vector<float>& a) {
   double m = 0;
@@ -143,14 +149,15 @@ class Gr00tN16Parity : public ::testing::TestWithParam<std::string> {};
 namespace {
 
 // One case through Tether at `precision`, every debug tensor captured, plus the robot-unit actions.
-std::map<std::string, std::vector<float>> run_case(const std::string& name, cpu::Precision precision) {
+std::map<std::string, std::vector<float>> run_case(const std::string& name, cpu::Precision precision,
+                                                   bool eagle_as_released = false) {
   const fs::path dir = kRoot / "cases" / name;
   const SafeTensorsFile oracle = SafeTensorsFile::open((dir / "oracle.safetensors").string());
   const auto& meta = oracle.metadata();
   models::LoadOptions options;
   options.precision = precision;
   options.embodiment = meta.at("embodiment_tag");
-  use_eagle_hub();
+  use_eagle_hub(eagle_as_released);
   auto policy = policy::Policy::load((kRoot / "checkpoint").string(), options);
   EXPECT_EQ(policy->spec().family, "gr00t_n16");
   EXPECT_EQ(policy->spec().precision, precision);
@@ -212,6 +219,17 @@ TEST_P(Gr00tN16Parity, HalfPrecisionErrorIsBounded) {
   }
 }
 
+// Isaac-GR00T ships the Eagle tokenizer as vocab.json + merges.txt, with no tokenizer.json: read that way, every case
+// tokenizes to the oracle's ids and gives its actions.
+TEST_P(Gr00tN16Parity, EagleTokenizerAsReleasedGivesTheSameTokens) {
+  const SafeTensorsFile oracle =
+      SafeTensorsFile::open((kRoot / "cases" / GetParam() / "oracle.safetensors").string());
+  const auto captured = run_case(GetParam(), cpu::Precision::fp32, /*eagle_as_released=*/true);
+  EXPECT_EQ(captured.at("pre.input_ids"), oracle.get("pre.input_ids").to_f32());
+  const std::vector<float> want = oracle.get("out.action_pred").to_f32();
+  EXPECT_LE(max_diff(captured.at("out.action_pred"), want), 1e-5 * std::max(1.0, max_abs(want)));
+}
+
 INSTANTIATE_TEST_SUITE_P(Cases, Gr00tN16Parity,
                          ::testing::Values("cam1_libero_panda", "cam2_new_embodiment", "long_instruction"),
                          [](const auto& info) { return info.param; });
@@ -241,4 +259,64 @@ TEST(Gr00tN16Embodiments, TwoTagsShareOneLoadAndMatchSeparateLoads) {
   EXPECT_EQ(chunk(*pa), a);
   EXPECT_EQ(chunk(*load("libero_panda", backend::make_backend("cpu"))), a);
   EXPECT_EQ(chunk(*load("new_embodiment", backend::make_backend("cpu"))), b);
+}
+
+// Opt-in (scripts/check_eagle_release.sh): a real Eagle directory, as Isaac-GR00T vendors it, against what its own
+// Eagle3_VLProcessor produced (tools/oracle/eagle_release_check.py, run under Isaac-GR00T's transformers pin). Checked:
+// the pixel values of frames of several sizes (smart_resize, Pillow bicubic, normalisation), the prompt's ids through
+// the chat template and the image-placeholder expansion, and the tokenizer on the shared 1,773-string corpus.
+TEST(Gr00tN16EagleRelease, ProcessorAndTokenizerMatchTheRealDirectory) {
+  const char* eagle = std::getenv("TETHER_EAGLE_DIR");
+  const char* expected = std::getenv("TETHER_EAGLE_EXPECTED");
+  if (!eagle || !expected)
+    GTEST_SKIP() << "TETHER_EAGLE_DIR and TETHER_EAGLE_EXPECTED unset (scripts/check_eagle_release.sh)";
+  const fs::path out = expected;
+  const Json meta = read_json_file((out / "meta.json").string());
+  const SafeTensorsFile want = SafeTensorsFile::open((out / "expected.safetensors").string());
+  const text::PretrainedTokenizer tok = text::load_pretrained_tokenizer(eagle);
+  std::printf("  tokenizer read from %s (%d tokens)\n", tok.source.c_str(), tok.tokenizer.vocab_size());
+  EXPECT_EQ(tok.tokenizer.token_to_id("<IMG_CONTEXT>"), meta.at("image_token_index").get<int32_t>());
+
+  const Json& cases = meta.at("cases");
+  for (std::size_t k = 0; k < cases.size(); ++k) {
+    const Json& c = cases[k];
+    const std::string key = "case" + std::to_string(k);
+    std::vector<int64_t> image_tokens;
+    double pixel_diff = 0;
+    for (std::size_t j = 0; j < c.at("frames").size(); ++j) {
+      const vision::EagleFrame f =
+          vision::eagle_process_image(vision::load_image((out / c.at("frames")[j].get<std::string>()).string()));
+      const auto size = c.at("image_sizes")[j].get<std::vector<int>>();
+      EXPECT_EQ(f.image.height, size.at(0)) << key << " frame " << j;
+      EXPECT_EQ(f.image.width, size.at(1)) << key << " frame " << j;
+      const std::vector<float> pixels = want.get(key + ".pixels" + std::to_string(j)).to_f32();
+      if (pixels.size() == f.pixels.size())
+        pixel_diff = std::max(pixel_diff, max_diff(f.pixels, pixels));
+      else
+        ADD_FAILURE() << key << " frame " << j << ": " << f.pixels.size() << " pixel values, upstream "
+                      << pixels.size();
+      image_tokens.push_back(models::gr00t_n16_image_tokens(f.image.height, f.image.width));
+    }
+    const std::vector<int32_t> ids =
+        tok.tokenizer.encode(models::gr00t_n16_prompt(c.at("language").get<std::string>(), image_tokens), false);
+    const std::vector<float> want_ids = want.get(key + ".input_ids").to_f32();
+    const std::vector<float> got_ids(ids.begin(), ids.end());
+    EXPECT_EQ(got_ids, want_ids) << key << ": the prompt's ids differ from the Eagle processor's";
+    std::printf("  [%s] %zu frames, %zu tokens: ids %s, pixel values max |diff| %.1e\n", key.c_str(),
+                c.at("frames").size(), ids.size(), got_ids == want_ids ? "identical" : "DIFFER", pixel_diff);
+    EXPECT_EQ(pixel_diff, 0.0) << key;
+  }
+
+  std::ifstream corpus(out / "tokenizer_cases.jsonl");
+  int checked = 0, failed = 0;
+  for (std::string line; std::getline(corpus, line);) {
+    const Json row = Json::parse(line);
+    const std::vector<int32_t> got = tok.tokenizer.encode(row.at("text").get<std::string>(), false);
+    ++checked;
+    if (got != row.at("ids").get<std::vector<int32_t>>() && failed++ < 5)
+      ADD_FAILURE() << "corpus string '" << row.at("text").get<std::string>() << "' tokenizes differently";
+  }
+  std::printf("  tokenizer corpus: %d strings, %d differ\n", checked, failed);
+  EXPECT_GT(checked, 1000);
+  EXPECT_EQ(failed, 0);
 }

@@ -151,7 +151,7 @@ TEST_P(FixtureParity, MatchesPythonTokenizers) {
 
 INSTANTIATE_TEST_SUITE_P(Tokenizers, FixtureParity,
                          ::testing::Values("smollm", "gpt2", "llama3", "qwen2", "misc", "fallback",
-                                           "gpt2_trunc", "smollm_gpt2cls", "gpt2_config_flags"));
+                                           "gpt2_trunc", "smollm_gpt2cls", "gpt2_config_flags", "qwen2_vocab_merges"));
 
 // Byte-level BPE without normalizer or stripping added tokens is lossless.
 TEST(Tokenizer, RoundTripDecode) {
@@ -400,6 +400,55 @@ TEST(TokenizerErrors, UnsupportedComponentsAreNamed) {
                             {"behavior", "Sideways"},
                             {"invert", false}};
   expect_load_error(j, ErrorCode::unsupported, {"behavior", "Sideways"});
+}
+
+// vocab.json + merges.txt without tokenizer.json: a bad merges line is named by file and line, and what Tether
+// does not rebuild (another class, no added_tokens_decoder) is refused rather than tokenized differently.
+TEST(TokenizerErrors, VocabAndMergesFilesAreChecked) {
+  const fs::path good = kDir / "qwen2_vocab_merges";
+  const fs::path dir = tether::testing::scratch_dir() / "qwen2_vocab_merges_errors";
+  auto fresh_copy = [&] {
+    fs::remove_all(dir);
+    fs::create_directories(dir);
+    for (const char* f : {"vocab.json", "merges.txt", "tokenizer_config.json"}) fs::copy_file(good / f, dir / f);
+  };
+  auto expect_error = [&](ErrorCode code, const std::string& file, const std::string& fragment) {
+    try {
+      load_pretrained_tokenizer(dir.string());
+      ADD_FAILURE() << "expected an error mentioning " << fragment;
+    } catch (const Error& e) {
+      EXPECT_EQ(e.code(), code) << e.what();
+      const std::string msg = e.what();
+      EXPECT_NE(msg.find((dir / file).string()), std::string::npos) << msg;
+      EXPECT_NE(msg.find(fragment), std::string::npos) << msg;
+    }
+  };
+  fresh_copy();
+  EXPECT_EQ(load_pretrained_tokenizer(dir.string()).source, (dir / "vocab.json").string());
+
+  std::ofstream(dir / "merges.txt", std::ios::app) << "one_symbol\n";
+  const auto lines = [&] {
+    std::ifstream in(dir / "merges.txt");
+    return std::count(std::istreambuf_iterator<char>(in), std::istreambuf_iterator<char>(), '\n');
+  }();
+  expect_error(ErrorCode::format, "merges.txt", "line " + std::to_string(lines));
+
+  fresh_copy();
+  Json config = tether::read_json_file<Json>((dir / "tokenizer_config.json").string());
+  config.erase("added_tokens_decoder");
+  std::ofstream(dir / "tokenizer_config.json") << config.dump();
+  expect_error(ErrorCode::unsupported, "tokenizer_config.json", "added_tokens_decoder");
+
+  fresh_copy();
+  config = tether::read_json_file<Json>((dir / "tokenizer_config.json").string());
+  config["tokenizer_class"] = "GPT2Tokenizer";
+  std::ofstream(dir / "tokenizer_config.json") << config.dump();
+  expect_error(ErrorCode::unsupported, "vocab.json", "GPT2Tokenizer");
+
+  fresh_copy();
+  std::ofstream(dir / "vocab.json") << "[1, 2]";
+  expect_error(ErrorCode::format, "vocab.json", "not an object");
+  fs::remove_all(dir);
 }
 
 TEST(TokenizerErrors, MalformedFieldsAreNamed) {

@@ -350,6 +350,42 @@ def merges_as_strings(tok):
 # ---------------------------------------------------------------------------------------------
 
 
+def write_qwen2_vocab_merges(tok, d):
+    """Writes `tok`'s BPE as vocab.json + merges.txt (the trained specials moved out of the vocabulary) and a
+    tokenizer_config.json shaped like the Eagle directory's."""
+    d.mkdir(exist_ok=True)
+    for stale in d.iterdir():
+        stale.unlink()
+    trained = tok.get_vocab(with_added_tokens=False)
+    specials = ["<|endoftext|>", "<|im_start|>", "<|im_end|>"]
+    in_order = [t for t, _ in sorted(trained.items(), key=lambda kv: kv[1]) if t not in specials]
+    vocab = {t: i for i, t in enumerate(in_order)}
+    merges = json.loads(tok.to_str())["model"]["merges"]
+    (d / "vocab.json").write_text(json.dumps(vocab, ensure_ascii=False, indent=2) + "\n", encoding="utf-8")
+    with open(d / "merges.txt", "w", encoding="utf-8") as f:
+        f.write("#version: 0.2\n")
+        for m in merges:
+            f.write((m if isinstance(m, str) else " ".join(m)) + "\n")
+    added = specials + ["<tool_call>", "</tool_call>", "<think>", "</think>", "<IMG_CONTEXT>", "<img>", "</img>"]
+    not_special = {"<tool_call>", "</tool_call>", "<think>", "</think>"}
+    decoder = {
+        str(len(vocab) + k): {
+            "content": t, "lstrip": False, "normalized": False, "rstrip": False, "single_word": False,
+            "special": t not in not_special,
+        }
+        for k, t in enumerate(added)
+    }
+    extra = ["<|im_start|>", "<|im_end|>", "<IMG_CONTEXT>", "<img>", "</img>"]
+    config = {
+        "add_bos_token": False, "add_eos_token": False, "add_prefix_space": False, "added_tokens_decoder": decoder,
+        "additional_special_tokens": extra, "bos_token": None, "clean_up_tokenization_spaces": False,
+        "eos_token": "<|im_end|>", "errors": "replace", "extra_special_tokens": {}, "model_max_length": 32768,
+        "pad_token": "<|endoftext|>", "split_special_tokens": False, "tokenizer_class": "Qwen2Tokenizer",
+        "unk_token": None,
+    }
+    (d / "tokenizer_config.json").write_text(json.dumps(config, indent=2) + "\n", encoding="utf-8")
+
+
 def write_jsonl(path, rows):
     with open(path, "w", encoding="utf-8", newline="\n") as f:
         for r in rows:
@@ -463,6 +499,20 @@ def main():
         {"class": type(flags_tok).__name__},
     )
     write_jsonl(d / "expected.jsonl", rows)
+
+    # Qwen2Tokenizer saved as vocab.json + merges.txt with no tokenizer.json, laid out as GR00T N1.6's Eagle
+    # directory ships it: the specials live outside vocab.json, in tokenizer_config.json's added_tokens_decoder
+    # (special and non-special entries), with Eagle's image tokens. transformers builds the pipeline from the class.
+    write_qwen2_vocab_merges(build_qwen2(lines), out / "qwen2_vocab_merges")
+    qwen2_slow = transformers.AutoTokenizer.from_pretrained(str(out / "qwen2_vocab_merges"))
+    assert type(qwen2_slow).__name__ == "Qwen2Tokenizer", type(qwen2_slow)
+    rows = expectations(
+        lambda t, sp: qwen2_slow(t, add_special_tokens=sp)["input_ids"],
+        lambda ids, skip: qwen2_slow.backend_tokenizer.decode(ids, skip_special_tokens=skip),
+        qwen2_slow.backend_tokenizer.get_vocab_size(with_added_tokens=True), 2,
+        {"class": type(qwen2_slow).__name__},
+    )
+    write_jsonl(out / "qwen2_vocab_merges" / "expected.jsonl", rows)
 
     # Batches through transformers, the way lerobot's tokenizer step calls it.
     rng = random.Random(91011)
