@@ -229,7 +229,9 @@ Gr00tEmbodiment read_gr00t_embodiment(const fs::path& dir, const std::string& wa
     throw Error(ErrorCode::not_found, stats_path.string() + ": missing (GR00T's normalisation statistics)");
   const Json stats = read_json_file(stats_path.string());
   if (!stats.contains(tag)) throw Error(ErrorCode::format, stats_path.string() + ": no statistics for '" + tag + "'");
-  const bool percentiles = json_get_or<bool>(kwargs, "use_percentiles", true, where);
+  // lerobot's N1.7 processor step defaults use_percentiles to true, Isaac-GR00T's Gr00tN1d6Processor to false.
+  const bool n16 = read_json_file(where).value("processor_class", Json("")) == Json("Gr00tN1d6Processor");
+  const bool percentiles = json_get_or<bool>(kwargs, "use_percentiles", !n16, where);
   read_groups(m, stats.at(tag), "state", percentiles, stats_path.string(), e.state_groups, e.state_lo, e.state_hi);
   read_groups(m, stats.at(tag), "action", percentiles, stats_path.string(), e.action_groups, e.action_lo, e.action_hi);
   // lerobot reads the relative groups only with use_relative_action; without it a RELATIVE group decodes as an

@@ -64,12 +64,26 @@ class Gr00tN16 final : public Gr00tModel {
   backend::Array<uint8_t> causal_;
 };
 
-// What N1.6 cannot serve yet: relative actions (Isaac-GR00T's StateActionProcessor decodes them its own way, which no
-// oracle here runs; N1.7's are lerobot's).
-void add_state_encoding_checks(const Gr00tEmbodiment& e) {
-  if (!e.relative.empty())
-    throw Error(ErrorCode::unsupported, "embodiment '" + e.tag + "' has relative actions ('" + e.relative.front().name +
-                                            "'), which Tether decodes for GR00T N1.7 only");
+std::vector<std::string> key_list(const Json& modality, const char* field) {
+  std::vector<std::string> out;
+  const Json v = modality.value(field, Json(nullptr));
+  if (v.is_array())
+    for (const auto& k : v) out.push_back(k.get<std::string>());
+  return out;
+}
+
+// What N1.6 cannot serve yet: action groups unnormalised with mean/std (the action modality's
+// mean_std_embedding_keys, which Isaac-GR00T's StateActionProcessor.unapply_action honours).
+void add_state_encoding_checks(const fs::path& dir, const Gr00tEmbodiment& e) {
+  const Json kwargs = gr00t_processor_kwargs(dir);
+  const Json action = kwargs.at("modality_configs").at(e.tag).value("action", Json::object());
+  for (const std::string& key : key_list(action, "mean_std_embedding_keys"))
+    for (const auto& g : e.action_groups)
+      if (g.name == key)
+        throw Error(ErrorCode::unsupported, gr00t_sidecar(dir, "processor_config.json").string() + ": embodiment '" +
+                                                e.tag + "' decodes action '" + key +
+                                                "' with mean/std (mean_std_embedding_keys), which Tether does not "
+                                                "support yet");
 }
 
 // StateActionProcessor's statistics of one state group: min/max (or q01/q99), mean/std.
@@ -84,14 +98,6 @@ std::vector<double> stat_values(const Json& stats, const std::string& key, const
   return v;
 }
 
-std::vector<std::string> key_list(const Json& modality, const char* field) {
-  std::vector<std::string> out;
-  const Json v = modality.value(field, Json(nullptr));
-  if (v.is_array())
-    for (const auto& k : v) out.push_back(k.get<std::string>());
-  return out;
-}
-
 Gr00tN16::Gr00tN16(const fs::path& dir, const Json& config, TensorStore store, const LoadOptions& options)
     : Gr00tModel(options) {
   const std::string where = (dir / "config.json").string();
@@ -99,7 +105,7 @@ Gr00tN16::Gr00tN16(const fs::path& dir, const Json& config, TensorStore store, c
   const cpu::Precision precision = options.precision;
   head_ = Gr00tHeadConfig::from_json(config, where, "nvidia/Eagle-Block2A-2B-v2");
   if (head_.vl_layers != 0) throw Error(ErrorCode::format, where + ": N1.6 has no VL self-attention");
-  add_state_encoding_checks(read_gr00t_embodiment(dir, options.embodiment));  // before the backbone loads
+  add_state_encoding_checks(dir, read_gr00t_embodiment(dir, options.embodiment));  // before the backbone loads
   const Json kwargs = gr00t_processor_kwargs(dir);
   const std::string pwhere = gr00t_sidecar(dir, "processor_config.json").string();
   geometry_ = vision::Gr00tImageGeometry::from_n16_processor_kwargs(kwargs, pwhere);
@@ -177,7 +183,7 @@ Gr00tN16::Gr00tN16(const fs::path& dir, const Json& config, TensorStore store, c
 }
 
 void Gr00tN16::add_state_encoding(const fs::path& dir, const Gr00tEmbodiment& e) {
-  add_state_encoding_checks(e);
+  add_state_encoding_checks(dir, e);
   // The state groups' encodings and statistics, in modality order.
   const Json kwargs = gr00t_processor_kwargs(dir);
   const std::string pwhere = gr00t_sidecar(dir, "processor_config.json").string();

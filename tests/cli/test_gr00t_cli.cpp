@@ -278,6 +278,58 @@ TEST(Gr00tN16Cli, PredictExportAndValidateOneEmbodiment) {
   fs::remove_all(out);
 }
 
+// An N1.6 embodiment with relative actions (tests/fixtures/gr00t_n16_relative) serves through every verb: predict
+// re-anchors against the request's state, export at bf16 validates; an action group decoded with mean/std is refused
+// by name, in one line, exit code 2.
+TEST(Gr00tN16Cli, RelativeActionsPredictExportAndValidate) {
+  const fs::path hub = tether::testing::eagle_hub_cache(), root = kN16.parent_path() / "gr00t_n16_relative";
+  const fs::path ckpt = root / "checkpoint", inputs = root / "cases" / "relative_arm" / "inputs";
+  const std::string obs = " --image front=" + (inputs / "front.png").string() + " --image wrist=" +
+                          (inputs / "wrist.png").string() + " --instruction 'lift the cup' --seed 1 --json";
+  // eef: xyz + an identity rotation's rows; joints; gripper. Moving the state moves the relative groups only.
+  const std::string at_origin = " --state=0,0,0,1,0,0,0,1,0,0,0,0,0,0.4",
+                    moved = " --state=1,0,0,1,0,0,0,1,0,2,0,0,0,0.4";
+  CliRun a = run_gr00t("predict " + ckpt.string() + at_origin + obs, hub);
+  ASSERT_EQ(a.code, 0) << a.err;
+  CliRun b = run_gr00t("predict " + ckpt.string() + moved + obs, hub);
+  ASSERT_EQ(b.code, 0) << b.err;
+  const auto ja = tether::Json::parse(a.out), jb = tether::Json::parse(b.out);
+  ASSERT_EQ(ja.at("action_dim").get<int>(), 14);
+  const auto& ra = ja.at("actions");
+  const auto& rb = jb.at("actions");
+  // The state enters the model too, so only the shift's direction is checked: eef x and joints[0] follow the state.
+  EXPECT_GT(rb.at(0).at(0).get<double>() - ra.at(0).at(0).get<double>(), 0.5);
+  EXPECT_GT(rb.at(0).at(9).get<double>() - ra.at(0).at(9).get<double>(), 1.0);
+
+  const fs::path out = tether::testing::scratch_dir() / "gr00t_n16_relative_export";
+  fs::remove_all(out);
+  CliRun r = run_gr00t("export " + ckpt.string() + " -o " + out.string() + " --precision bf16", hub);
+  ASSERT_EQ(r.code, 0) << r.err;
+  r = run_gr00t("validate export " + out.string(), hub);
+  EXPECT_EQ(r.code, 0) << r.out << r.err;
+  fs::remove_all(out);
+
+  const fs::path bad = tether::testing::scratch_dir() / "gr00t_n16_mean_std_action";
+  fs::remove_all(bad);
+  fs::copy(ckpt, bad, fs::copy_options::recursive);
+  tether::Json pc = tether::read_json_file((bad / "processor_config.json").string());
+  pc["processor_kwargs"]["modality_configs"]["relative_arm"]["action"]["mean_std_embedding_keys"] = {"gripper"};
+  std::ofstream(bad / "processor_config.json") << pc.dump(2);
+  r = run_gr00t("predict " + bad.string() + at_origin + obs, hub);
+  EXPECT_EQ(r.code, 2);
+  EXPECT_EQ(lines(r.err), 1) << r.err;
+  EXPECT_NE(r.err.find("'gripper' with mean/std"), std::string::npos) << r.err;
+
+  // Without use_percentiles, N1.6 decodes with min/max (Isaac-GR00T's default), as the fixture's explicit false does.
+  pc["processor_kwargs"]["modality_configs"]["relative_arm"]["action"].erase("mean_std_embedding_keys");
+  pc["processor_kwargs"].erase("use_percentiles");
+  std::ofstream(bad / "processor_config.json") << pc.dump(2);
+  r = run_gr00t("predict " + bad.string() + at_origin + obs, hub);
+  ASSERT_EQ(r.code, 0) << r.err;
+  EXPECT_EQ(tether::Json::parse(r.out).at("actions"), ra);
+  fs::remove_all(bad);
+}
+
 TEST(Gr00tN16Cli, MissingEagleDirectorySaysWhereItComesFrom) {
   const CliRun r = run_gr00t("predict " + (kN16 / "checkpoint").string() + " --embodiment-tag libero_panda --image image=" +
                                (kN16 / "cases" / "cam1_libero_panda" / "inputs" / "image.png").string() +

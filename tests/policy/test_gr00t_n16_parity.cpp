@@ -150,15 +150,15 @@ namespace {
 
 // One case through Tether at `precision`, every debug tensor captured, plus the robot-unit actions.
 std::map<std::string, std::vector<float>> run_case(const std::string& name, cpu::Precision precision,
-                                                   bool eagle_as_released = false) {
-  const fs::path dir = kRoot / "cases" / name;
+                                                   bool eagle_as_released = false, const fs::path& root = kRoot) {
+  const fs::path dir = root / "cases" / name;
   const SafeTensorsFile oracle = SafeTensorsFile::open((dir / "oracle.safetensors").string());
   const auto& meta = oracle.metadata();
   models::LoadOptions options;
   options.precision = precision;
   options.embodiment = meta.at("embodiment_tag");
   use_eagle_hub(eagle_as_released);
-  auto policy = policy::Policy::load((kRoot / "checkpoint").string(), options);
+  auto policy = policy::Policy::load((root / "checkpoint").string(), options);
   EXPECT_EQ(policy->spec().family, "gr00t_n16");
   EXPECT_EQ(policy->spec().precision, precision);
   policy::Observation o;
@@ -178,30 +178,51 @@ std::map<std::string, std::vector<float>> run_case(const std::string& name, cpu:
   return captured;
 }
 
-}  // namespace
-
-TEST_P(Gr00tN16Parity, MatchesTheOracleEndToEnd) {
-  const fs::path dir = kRoot / "cases" / GetParam();
+// Every tensor the oracle recorded for case `name` under `root` that Tether also produces, within tolerance.
+void expect_matches_oracle(const fs::path& root, const std::string& name) {
+  const fs::path dir = root / "cases" / name;
   const SafeTensorsFile oracle = SafeTensorsFile::open((dir / "oracle.safetensors").string());
-  const std::map<std::string, std::vector<float>> captured = run_case(GetParam(), cpu::Precision::fp32);
-  std::printf("  %-24s %-28s %12s\n", ("[" + GetParam() + "]").c_str(), "tensor", "max |diff|");
+  const std::map<std::string, std::vector<float>> captured =
+      run_case(name, cpu::Precision::fp32, /*eagle_as_released=*/false, root);
+  std::printf("  %-24s %-28s %12s\n", ("[" + name + "]").c_str(), "tensor", "max |diff|");
   int compared = 0;
-  for (const std::string& name : oracle.names()) {
-    auto it = captured.find(name);
+  for (const std::string& tensor : oracle.names()) {
+    auto it = captured.find(tensor);
     if (it == captured.end()) continue;
-    const std::vector<float> want = oracle.get(name).to_f32();
-    ASSERT_EQ(want.size(), it->second.size()) << name;
+    const std::vector<float> want = oracle.get(tensor).to_f32();
+    ASSERT_EQ(want.size(), it->second.size()) << tensor;
     const double d = max_diff(it->second, want);
     // Tokens and the state encoding exact but for float rounding; intermediates 1e-4 of their largest value; the
     // sampler's output and the actions 1e-5.
-    const double tol = name.rfind("pre.", 0) == 0 ? 1e-6
-                       : name.rfind("out.", 0) == 0 ? 1e-5 * std::max(1.0, max_abs(want))
+    const double tol = tensor.rfind("pre.", 0) == 0 ? 1e-6
+                       : tensor.rfind("out.", 0) == 0 ? 1e-5 * std::max(1.0, max_abs(want))
                                                     : 1e-4 * std::max(1.0, max_abs(want));
-    std::printf("  %-24s %-28s %12.3e%s\n", "", name.c_str(), d, d <= tol ? "" : "   <-- over tolerance");
-    EXPECT_LE(d, tol) << name;
+    std::printf("  %-24s %-28s %12.3e%s\n", "", tensor.c_str(), d, d <= tol ? "" : "   <-- over tolerance");
+    EXPECT_LE(d, tol) << tensor;
     ++compared;
   }
   EXPECT_GE(compared, 12);
+}
+
+}  // namespace
+
+TEST_P(Gr00tN16Parity, MatchesTheOracleEndToEnd) { expect_matches_oracle(kRoot, GetParam()); }
+
+// use_relative_action (tests/fixtures/gr00t_n16_relative, tools/oracle/gr00t_n16_relative_oracle.py): an EEF group in
+// XYZ_ROT6D with per-step statistics and a NON_EEF group, made absolute against the request's state as Isaac-GR00T's
+// StateActionProcessor.unapply_action does, beside an absolute gripper. Every recorded tensor, then the relative
+// values before re-anchoring.
+TEST(Gr00tN16Relative, MatchesIsaacGr00tsDecode) {
+  const fs::path root = fs::path(TETHER_FIXTURES_DIR) / "gr00t_n16_relative";
+  expect_matches_oracle(root, "relative_arm");
+  const SafeTensorsFile oracle =
+      SafeTensorsFile::open((root / "cases" / "relative_arm" / "oracle.safetensors").string());
+  const std::vector<float> want = oracle.get("out.actions").to_f32(), rel = oracle.get("out.relative.eef").to_f32();
+  EXPECT_EQ(want.size(), std::size_t(6 * 14));
+  // The re-anchoring moved the eef rows: the absolute chunk is not the relative one.
+  double moved = 0;
+  for (std::size_t r = 0; r < 6; ++r) moved = std::max(moved, double(std::fabs(want[r * 14] - rel[r * 9])));
+  EXPECT_GT(moved, 0.1);
 }
 
 // bf16 and fp16: measured against upstream fp32 and bounded. The fixture's weights are bf16, as the release's are, so
@@ -261,7 +282,7 @@ TEST(Gr00tN16Embodiments, TwoTagsShareOneLoadAndMatchSeparateLoads) {
   EXPECT_EQ(chunk(*load("new_embodiment", backend::make_backend("cpu"))), b);
 }
 
-// Opt-in (scripts/check_eagle_release.sh): a real Eagle directory, as Isaac-GR00T vendors it, against what its own
+// Opt-in (scripts/check_isaac_gr00t.sh): a real Eagle directory, as Isaac-GR00T vendors it, against what its own
 // Eagle3_VLProcessor produced (tools/oracle/eagle_release_check.py, run under Isaac-GR00T's transformers pin). Checked:
 // the pixel values of frames of several sizes (smart_resize, Pillow bicubic, normalisation), the prompt's ids through
 // the chat template and the image-placeholder expansion, and the tokenizer on the shared 1,773-string corpus.
@@ -269,7 +290,7 @@ TEST(Gr00tN16EagleRelease, ProcessorAndTokenizerMatchTheRealDirectory) {
   const char* eagle = std::getenv("TETHER_EAGLE_DIR");
   const char* expected = std::getenv("TETHER_EAGLE_EXPECTED");
   if (!eagle || !expected)
-    GTEST_SKIP() << "TETHER_EAGLE_DIR and TETHER_EAGLE_EXPECTED unset (scripts/check_eagle_release.sh)";
+    GTEST_SKIP() << "TETHER_EAGLE_DIR and TETHER_EAGLE_EXPECTED unset (scripts/check_isaac_gr00t.sh)";
   const fs::path out = expected;
   const Json meta = read_json_file((out / "meta.json").string());
   const SafeTensorsFile want = SafeTensorsFile::open((out / "expected.safetensors").string());

@@ -1,6 +1,6 @@
 #!/usr/bin/env python3
 """Runs a real GR00T N1.6 Eagle directory's own processor and writes what it produced, for Tether's opt-in test
-`Gr00tN16EagleRelease.*` (scripts/check_eagle_release.sh runs both).
+`Gr00tN16EagleRelease.*` (scripts/check_isaac_gr00t.sh runs both).
 
 Isaac-GR00T vendors that directory (gr00t/model/modules/nvidia/Eagle-Block2A-2B-v2) instead of publishing it on the
 hub or on PyPI, so no committed fixture can come from it. Given a copy, this script loads its Eagle3_VLProcessor

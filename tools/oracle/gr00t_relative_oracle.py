@@ -67,20 +67,25 @@ def rotation(axis: np.ndarray, angle: float) -> np.ndarray:
     return np.eye(3) + np.sin(angle) * k + (1 - np.cos(angle)) * (k @ k)
 
 
+def relative_statistics(horizon: int) -> dict:
+    """relative_action statistics of an eef (xyz + rot6d, per step) and a joints (4, one row) group: small
+    translations growing with the step, rotations near the identity."""
+    lo, hi = [], []
+    for step in range(horizon):
+        t = 0.02 * (step + 1)
+        lo.append([round(v, 6) for v in [-t, -t, -t] + list(IDENTITY_ROT6D - 0.15 - 0.01 * step)])
+        hi.append([round(v, 6) for v in [t, 1.5 * t, t] + list(IDENTITY_ROT6D + 0.15 + 0.01 * step)])
+    return {"eef": with_moments(lo, hi),
+            "joints": with_moments([-0.3, -0.2, -0.25, -0.1], [0.3, 0.25, 0.2, 0.15])}
+
+
 def statistics() -> dict:
     gen = np.random.default_rng(STATS_SEED)
     stats = {"state": {}, "action": {}, "relative_action": {}}
     for modality in ("state", "action"):
         for key, dim in EMBODIMENT[modality]:
             stats[modality][key] = go.group_stats(gen, dim, None)
-    # Relative deltas: small translations growing with the step, rotations near the identity.
-    lo, hi = [], []
-    for step in range(HORIZON):
-        t = 0.02 * (step + 1)
-        lo.append([round(v, 6) for v in [-t, -t, -t] + list(IDENTITY_ROT6D - 0.15 - 0.01 * step)])
-        hi.append([round(v, 6) for v in [t, 1.5 * t, t] + list(IDENTITY_ROT6D + 0.15 + 0.01 * step)])
-    stats["relative_action"]["eef"] = with_moments(lo, hi)
-    stats["relative_action"]["joints"] = with_moments([-0.3, -0.2, -0.25, -0.1], [0.3, 0.25, 0.2, 0.15])
+    stats["relative_action"] = relative_statistics(HORIZON)
     return stats
 
 
