@@ -5,8 +5,8 @@
 # Usage: scripts/check_isaac_gr00t.sh <Isaac-GR00T checkout>
 #
 # 1. tools/oracle/isaac_state_action_check.py runs Isaac-GR00T's StateActionProcessor on every committed N1.6 case
-#    (tests/fixtures/gr00t_n16, gr00t_n16_relative): state encoding and action decoding, relative actions included,
-#    must equal what the fixtures hold (and Tether matches in the parity tests).
+#    (tests/fixtures/gr00t_n16, gr00t_n16_decode): state encoding and action decoding, relative and mean/std actions
+#    included, must equal what the fixtures hold (and Tether matches in the parity tests).
 # 2. tools/oracle/eagle_release_check.py runs the Eagle directory's own Eagle3_VLProcessor (trust_remote_code) as
 #    Isaac-GR00T's N1.6 processor and collator call it, under Isaac-GR00T's transformers pin (4.51.3, with
 #    tokenizers 0.21, huggingface_hub 0.x, and av and lmdb, which the processor imports) put first on PYTHONPATH from

@@ -34,6 +34,10 @@ struct Gr00tEmbodiment {
   // With use_relative_action: the action groups predicted relative to the state (lerobot's
   // GrootN17ActionDecodeStep), unnormalised with relative_action's min/max and made absolute against the state.
   std::vector<RelativeAction> relative;
+  // N1.6 only: action groups listed in the action modality's mean_std_embedding_keys, which Isaac-GR00T's
+  // StateActionProcessor decodes as x * std + mean (x where std is 0), unclipped. One row: per column a 1 in
+  // action_mean_std where that applies, and its mean and std; empty when no group is listed.
+  std::vector<float> action_mean_std, action_mean, action_std;
 };
 
 // A sidecar file of a raw GR00T checkpoint (processor_config.json, statistics.json, embodiment_id.json): in the

@@ -46,6 +46,14 @@ Normalization gr00t_normalization(const fs::path& dir, const Json& config, const
     n.input.features["state"] = f;
   }
   FeatureNorm action{"ACTION", NormMode::min_max_clipped, false, {{"min", e.action_lo}, {"max", e.action_hi}}};
+  if (!e.action_mean_std.empty()) {  // N1.6's mean/std action groups, one row repeated as the bounds' rows are
+    const std::size_t rows = e.action_lo.size() / e.action_mean_std.size();
+    for (const auto& [name, row] : {std::pair{"mean_std_mask", &e.action_mean_std}, std::pair{"mean", &e.action_mean},
+                                    std::pair{"std", &e.action_std}}) {
+      std::vector<float>& v = action.stats[name];
+      for (std::size_t r = 0; r < rows; ++r) v.insert(v.end(), row->begin(), row->end());
+    }
+  }
   finish_feature("action", action, stats, n.warnings);
   n.output.features["action"] = action;
   n.output.relative = e.relative;

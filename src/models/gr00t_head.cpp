@@ -166,6 +166,42 @@ void read_relative_groups(const Json& action, const Json& stats, const std::stri
   e.action_hi = std::move(hi);
 }
 
+// Isaac-GR00T's N1.6 StateActionProcessor decodes the action groups listed in the action modality's
+// mean_std_embedding_keys with their mean/std (lerobot's N1.7 steps ignore the key). Fills e.action_mean_std,
+// e.action_mean and e.action_std.
+void read_mean_std_actions(const Json& action, const Json& stats, const std::string& stats_where,
+                           const std::string& where, Gr00tEmbodiment& e) {
+  const Json keys = action.value("mean_std_embedding_keys", Json(nullptr));
+  if (!keys.is_array() || keys.empty()) return;
+  int64_t dim = 0;
+  for (const ModalityGroup& g : e.action_groups) dim += g.dim;
+  e.action_mean_std.assign(std::size_t(dim), 0.f);
+  e.action_mean.assign(std::size_t(dim), 0.f);
+  e.action_std.assign(std::size_t(dim), 0.f);
+  int64_t offset = 0;
+  for (const ModalityGroup& g : e.action_groups) {
+    const bool listed = std::any_of(keys.begin(), keys.end(), [&](const Json& k) { return k == Json(g.name); });
+    if (listed) {
+      for (const RelativeAction& r : e.relative)
+        if (r.name == g.name)
+          throw Error(ErrorCode::unsupported, where + ": action '" + g.name + "' is both relative and decoded with " +
+                                                  "mean/std, which Tether does not support");
+      const Json& s = stats.at("action").at(g.name);
+      for (const char* name : {"mean", "std"}) {
+        const Json& v = s.value(name, Json(nullptr));
+        if (!v.is_array() || int64_t(v.size()) != g.dim)
+          throw Error(ErrorCode::format, stats_where + ": action '" + g.name + "' is decoded with mean/std " +
+                                             "(mean_std_embedding_keys) but its " + name + " is not " +
+                                             std::to_string(g.dim) + " values");
+        auto& out = std::string(name) == "mean" ? e.action_mean : e.action_std;
+        for (int64_t c = 0; c < g.dim; ++c) out[std::size_t(offset + c)] = v[std::size_t(c)].get<float>();
+      }
+      for (int64_t c = 0; c < g.dim; ++c) e.action_mean_std[std::size_t(offset + c)] = 1.f;
+    }
+    offset += g.dim;
+  }
+}
+
 }  // namespace
 
 bool gr00t_applies_libero_transform(const std::string& embodiment_tag) { return embodiment_tag == "libero_sim"; }
@@ -238,6 +274,7 @@ Gr00tEmbodiment read_gr00t_embodiment(const fs::path& dir, const std::string& wa
   // absolute one, with the action statistics.
   if (json_get_or<bool>(kwargs, "use_relative_action", false, where))
     read_relative_groups(action, stats.at(tag), stats_path.string(), where, e);
+  if (n16) read_mean_std_actions(action, stats.at(tag), stats_path.string(), where, e);
   return e;
 }
 

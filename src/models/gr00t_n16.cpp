@@ -72,20 +72,6 @@ std::vector<std::string> key_list(const Json& modality, const char* field) {
   return out;
 }
 
-// What N1.6 cannot serve yet: action groups unnormalised with mean/std (the action modality's
-// mean_std_embedding_keys, which Isaac-GR00T's StateActionProcessor.unapply_action honours).
-void add_state_encoding_checks(const fs::path& dir, const Gr00tEmbodiment& e) {
-  const Json kwargs = gr00t_processor_kwargs(dir);
-  const Json action = kwargs.at("modality_configs").at(e.tag).value("action", Json::object());
-  for (const std::string& key : key_list(action, "mean_std_embedding_keys"))
-    for (const auto& g : e.action_groups)
-      if (g.name == key)
-        throw Error(ErrorCode::unsupported, gr00t_sidecar(dir, "processor_config.json").string() + ": embodiment '" +
-                                                e.tag + "' decodes action '" + key +
-                                                "' with mean/std (mean_std_embedding_keys), which Tether does not "
-                                                "support yet");
-}
-
 // StateActionProcessor's statistics of one state group: min/max (or q01/q99), mean/std.
 std::vector<double> stat_values(const Json& stats, const std::string& key, const char* name, int64_t dim,
                                 const std::string& where) {
@@ -105,7 +91,7 @@ Gr00tN16::Gr00tN16(const fs::path& dir, const Json& config, TensorStore store, c
   const cpu::Precision precision = options.precision;
   head_ = Gr00tHeadConfig::from_json(config, where, "nvidia/Eagle-Block2A-2B-v2");
   if (head_.vl_layers != 0) throw Error(ErrorCode::format, where + ": N1.6 has no VL self-attention");
-  add_state_encoding_checks(dir, read_gr00t_embodiment(dir, options.embodiment));  // before the backbone loads
+  read_gr00t_embodiment(dir, options.embodiment);  // its errors before the backbone loads
   const Json kwargs = gr00t_processor_kwargs(dir);
   const std::string pwhere = gr00t_sidecar(dir, "processor_config.json").string();
   geometry_ = vision::Gr00tImageGeometry::from_n16_processor_kwargs(kwargs, pwhere);
@@ -183,7 +169,6 @@ Gr00tN16::Gr00tN16(const fs::path& dir, const Json& config, TensorStore store, c
 }
 
 void Gr00tN16::add_state_encoding(const fs::path& dir, const Gr00tEmbodiment& e) {
-  add_state_encoding_checks(dir, e);
   // The state groups' encodings and statistics, in modality order.
   const Json kwargs = gr00t_processor_kwargs(dir);
   const std::string pwhere = gr00t_sidecar(dir, "processor_config.json").string();

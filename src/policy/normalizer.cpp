@@ -1,6 +1,7 @@
 // The normalisation arithmetic, operation for operation as lerobot writes it.
 #include "policy/normalizer.h"
 
+#include <algorithm>
 #include <array>
 #include <cmath>
 
@@ -21,6 +22,8 @@ void Normalizer::apply(const std::string& key, float* x, int64_t n, Direction di
                                                  std::to_string(width));
   // Float32 arithmetic in the same operation order as upstream so results match to the last bit.
   const bool inverse = direction == Direction::unnormalize;
+  const auto mask_it = f.stats.find("mean_std_mask");  // GR00T N1.6's columns decoded with mean/std instead
+  const std::vector<float>* mean_std = mask_it == f.stats.end() ? nullptr : &mask_it->second;
   for (int64_t i = 0; i < n; ++i) {
     const std::size_t j = std::size_t(i) % width;
     float& v = x[i];
@@ -48,6 +51,12 @@ void Normalizer::apply(const std::string& key, float* x, int64_t n, Direction di
         break;
       }
       case NormMode::min_max_clipped: {
+        if (mean_std && (*mean_std)[j] != 0.f) {
+          // Isaac-GR00T's unnormalize_values_meanstd: x * std + mean, unclipped; x itself where std is 0.
+          const float mean = stat("mean")[j], sd = stat("std")[j];
+          if (sd != 0.f) v = inverse ? v * sd + mean : (v - mean) / sd;
+          break;
+        }
         // GR00T N1.7's pack and decode steps (lerobot): float32, in their operation order.
         const float lo = stat("min")[j], d = stat("max")[j] - lo;
         if (inverse) {
@@ -120,6 +129,11 @@ std::vector<std::string> Normalizer::describe() const {
   for (const auto& [key, f] : features_)
     out.push_back(key + ": " + norm_mode_name(f.mode) +
                   (f.mode == NormMode::identity ? "" : f.has_stats ? " (stats present)" : " (no stats: identity)"));
+  for (const auto& [key, f] : features_)
+    if (const auto m = f.stats.find("mean_std_mask"); m != f.stats.end())
+      out.push_back(key + ": the groups in mean_std_embedding_keys decoded with mean/std, unclipped (" +
+                    std::to_string(std::count(m->second.begin(), m->second.end(), 1.f)) + " of " +
+                    std::to_string(m->second.size()) + " values)");
   for (const auto& g : relative_)
     out.push_back("action '" + g.name + "': relative to the state (" +
                   (g.kind == models::RelativeAction::Kind::joint ? "added to it" : "an xyz+rot6d pose composed with it") +

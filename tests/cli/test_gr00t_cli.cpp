@@ -278,14 +278,15 @@ TEST(Gr00tN16Cli, PredictExportAndValidateOneEmbodiment) {
   fs::remove_all(out);
 }
 
-// An N1.6 embodiment with relative actions (tests/fixtures/gr00t_n16_relative) serves through every verb: predict
-// re-anchors against the request's state, export at bf16 validates; an action group decoded with mean/std is refused
-// by name, in one line, exit code 2.
+// An N1.6 embodiment with relative actions (tests/fixtures/gr00t_n16_decode) serves through every verb: predict
+// re-anchors against the request's state, export at bf16 validates. A relative group also listed for mean/std is
+// refused by name, in one line, exit code 2.
 TEST(Gr00tN16Cli, RelativeActionsPredictExportAndValidate) {
-  const fs::path hub = tether::testing::eagle_hub_cache(), root = kN16.parent_path() / "gr00t_n16_relative";
+  const fs::path hub = tether::testing::eagle_hub_cache(), root = kN16.parent_path() / "gr00t_n16_decode";
   const fs::path ckpt = root / "checkpoint", inputs = root / "cases" / "relative_arm" / "inputs";
   const std::string obs = " --image front=" + (inputs / "front.png").string() + " --image wrist=" +
-                          (inputs / "wrist.png").string() + " --instruction 'lift the cup' --seed 1 --json";
+                          (inputs / "wrist.png").string() +
+                          " --instruction 'lift the cup' --embodiment-tag relative_arm --seed 1 --json";
   // eef: xyz + an identity rotation's rows; joints; gripper. Moving the state moves the relative groups only.
   const std::string at_origin = " --state=0,0,0,1,0,0,0,1,0,0,0,0,0,0.4",
                     moved = " --state=1,0,0,1,0,0,0,1,0,2,0,0,0,0.4";
@@ -303,7 +304,8 @@ TEST(Gr00tN16Cli, RelativeActionsPredictExportAndValidate) {
 
   const fs::path out = tether::testing::scratch_dir() / "gr00t_n16_relative_export";
   fs::remove_all(out);
-  CliRun r = run_gr00t("export " + ckpt.string() + " -o " + out.string() + " --precision bf16", hub);
+  CliRun r =
+      run_gr00t("export " + ckpt.string() + " -o " + out.string() + " --precision bf16 --embodiment-tag relative_arm", hub);
   ASSERT_EQ(r.code, 0) << r.err;
   r = run_gr00t("validate export " + out.string(), hub);
   EXPECT_EQ(r.code, 0) << r.out << r.err;
@@ -313,12 +315,12 @@ TEST(Gr00tN16Cli, RelativeActionsPredictExportAndValidate) {
   fs::remove_all(bad);
   fs::copy(ckpt, bad, fs::copy_options::recursive);
   tether::Json pc = tether::read_json_file((bad / "processor_config.json").string());
-  pc["processor_kwargs"]["modality_configs"]["relative_arm"]["action"]["mean_std_embedding_keys"] = {"gripper"};
+  pc["processor_kwargs"]["modality_configs"]["relative_arm"]["action"]["mean_std_embedding_keys"] = {"joints"};
   std::ofstream(bad / "processor_config.json") << pc.dump(2);
   r = run_gr00t("predict " + bad.string() + at_origin + obs, hub);
   EXPECT_EQ(r.code, 2);
   EXPECT_EQ(lines(r.err), 1) << r.err;
-  EXPECT_NE(r.err.find("'gripper' with mean/std"), std::string::npos) << r.err;
+  EXPECT_NE(r.err.find("action 'joints' is both relative and decoded with mean/std"), std::string::npos) << r.err;
 
   // Without use_percentiles, N1.6 decodes with min/max (Isaac-GR00T's default), as the fixture's explicit false does.
   pc["processor_kwargs"]["modality_configs"]["relative_arm"]["action"].erase("mean_std_embedding_keys");

@@ -208,21 +208,33 @@ void expect_matches_oracle(const fs::path& root, const std::string& name) {
 
 TEST_P(Gr00tN16Parity, MatchesTheOracleEndToEnd) { expect_matches_oracle(kRoot, GetParam()); }
 
-// use_relative_action (tests/fixtures/gr00t_n16_relative, tools/oracle/gr00t_n16_relative_oracle.py): an EEF group in
-// XYZ_ROT6D with per-step statistics and a NON_EEF group, made absolute against the request's state as Isaac-GR00T's
-// StateActionProcessor.unapply_action does, beside an absolute gripper. Every recorded tensor, then the relative
-// values before re-anchoring.
-TEST(Gr00tN16Relative, MatchesIsaacGr00tsDecode) {
-  const fs::path root = fs::path(TETHER_FIXTURES_DIR) / "gr00t_n16_relative";
-  expect_matches_oracle(root, "relative_arm");
+// The decodes of Isaac-GR00T's StateActionProcessor.unapply_action that the cases above do not reach
+// (tests/fixtures/gr00t_n16_decode, tools/oracle/gr00t_n16_decode_oracle.py), each an embodiment of one checkpoint.
+const fs::path kDecodeRoot = fs::path(TETHER_FIXTURES_DIR) / "gr00t_n16_decode";
+
+// use_relative_action: an EEF group in XYZ_ROT6D with per-step statistics and a NON_EEF group, made absolute against
+// the request's state, beside an absolute gripper. Every recorded tensor, then the re-anchoring's effect.
+TEST(Gr00tN16Decode, RelativeActionsMatchIsaacGr00t) {
+  expect_matches_oracle(kDecodeRoot, "relative_arm");
   const SafeTensorsFile oracle =
-      SafeTensorsFile::open((root / "cases" / "relative_arm" / "oracle.safetensors").string());
+      SafeTensorsFile::open((kDecodeRoot / "cases" / "relative_arm" / "oracle.safetensors").string());
   const std::vector<float> want = oracle.get("out.actions").to_f32(), rel = oracle.get("out.relative.eef").to_f32();
   EXPECT_EQ(want.size(), std::size_t(6 * 14));
   // The re-anchoring moved the eef rows: the absolute chunk is not the relative one.
   double moved = 0;
   for (std::size_t r = 0; r < 6; ++r) moved = std::max(moved, double(std::fabs(want[r * 14] - rel[r * 9])));
   EXPECT_GT(moved, 0.1);
+}
+
+// mean_std_embedding_keys in the action modality (Isaac-GR00T's oxe_widowx / oxe_google configs): those groups
+// decode as x * std + mean, unclipped, and a dimension whose std is 0 passes the model's value through.
+TEST(Gr00tN16Decode, MeanStdActionsMatchIsaacGr00t) {
+  expect_matches_oracle(kDecodeRoot, "mean_std_arm");
+  const auto captured = run_case("mean_std_arm", cpu::Precision::fp32, false, kDecodeRoot);
+  const std::vector<float>& actions = captured.at("out.actions");
+  const std::vector<float>& pred = captured.at("out.action_pred");  // [8][16] normalised
+  ASSERT_EQ(actions.size(), std::size_t(6 * 7));
+  for (std::size_t r = 0; r < 6; ++r) EXPECT_EQ(actions[r * 7 + 4], pred[r * 16 + 4]) << "row " << r;  // rpy[1]
 }
 
 // bf16 and fp16: measured against upstream fp32 and bounded. The fixture's weights are bf16, as the release's are, so

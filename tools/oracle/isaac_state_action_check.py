@@ -1,6 +1,6 @@
 #!/usr/bin/env python3
 """Runs Isaac-GR00T's own StateActionProcessor (from a source checkout) on every committed GR00T N1.6 case and
-compares it with what the fixtures hold, which Tether matches in `Gr00tN16Parity` and `Gr00tN16Relative`.
+compares it with what the fixtures hold, which Tether matches in `Gr00tN16Parity` and `Gr00tN16Decode`.
 
 The N1.6 fixtures restate Isaac-GR00T's state encoding and action decoding, because Isaac-GR00T is not on PyPI. Given
 a checkout, this script checks those restatements against the real code: for each case it builds
@@ -21,7 +21,7 @@ from safetensors.numpy import load_file
 from safetensors import safe_open
 
 REPO = Path(__file__).resolve().parents[2]
-FIXTURES = [REPO / "tests/fixtures/gr00t_n16", REPO / "tests/fixtures/gr00t_n16_relative"]
+FIXTURES = [REPO / "tests/fixtures/gr00t_n16", REPO / "tests/fixtures/gr00t_n16_decode"]
 TOLERANCE = 1e-6  # relative to the largest value; the fixtures store float32
 
 

@@ -38,6 +38,6 @@ echo "== GR00T N1.7 fixtures (the stand-in Qwen3-VL backbone repository's hub ca
 "$here/run.sh" "$here/gr00t_relative_oracle.py"  # GR00T N1.7 relative actions (the cam2_new weights and frames)
 echo "== GR00T N1.6 fixtures (tiny raw checkpoint, stand-in Eagle directory, block and end-to-end oracles)"
 "$here/run.sh" "$here/gr00t_n16_oracle.py"
-"$here/run.sh" "$here/gr00t_n16_relative_oracle.py"  # GR00T N1.6 relative actions (the gr00t_n16 weights and frames)
+"$here/run.sh" "$here/gr00t_n16_decode_oracle.py"  # GR00T N1.6 relative and mean/std actions (the gr00t_n16 weights and frames)
 echo "== demo policy"
 "$here/run.sh" "$here/smolvla_oracle.py" demo --out "$root/models/demo"
