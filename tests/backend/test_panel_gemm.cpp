@@ -95,6 +95,38 @@ TEST(PanelGemm, EveryKernelMatchesTheReferenceAndEachOther) {
       }
 }
 
+TEST(PanelGemm, XWithARowStrideIsPackedExactlyAtEveryTileHeight) {
+  // x is packed into row tiles a register block of k steps at a time (a transpose) with a scalar tail: every tile
+  // height from 1 row up, k around the block width, and rows a stride apart (attention's heads) must give each
+  // kernel the portable kernel's bits and the reference's values.
+  std::mt19937 g(23);
+  const auto kernels = panel_kernels();
+  for (int64_t m = 1; m <= 30; ++m)
+    for (int64_t k : {1, 7, 8, 9, 15, 16, 17, 33, 64}) {
+      const int64_t n = 40, lda = k + 5;
+      const auto x = random_vec(std::size_t(m * lda), g), w = random_vec(std::size_t(n * k), g);
+      const auto b = random_vec(std::size_t(n), g);
+      std::vector<float> first;
+      for (const PanelKernel* kernel : kernels) {
+        const Packed p = pack(w, b, n, k, kernel->panel_width, PanelType::f32);
+        std::vector<float> y(std::size_t(m * n), 99.f);
+        kernel->get(PanelType::f32)({x.data(), m, k, lda, p.data(PanelType::f32), n, p.bias.data(), y.data(), n, false});
+        double diff = 0;
+        for (int64_t i = 0; i < m; ++i)
+          for (int64_t j = 0; j < n; ++j) {
+            double want = b[std::size_t(j)];
+            for (int64_t q = 0; q < k; ++q) want += double(x[std::size_t(i * lda + q)]) * double(w[std::size_t(j * k + q)]);
+            diff = std::max(diff, std::fabs(want - double(y[std::size_t(i * n + j)])));
+          }
+        EXPECT_LT(diff, 1e-4) << kernel->name << " m=" << m << " k=" << k;
+        if (first.empty()) first = y;
+        else
+          EXPECT_EQ(0, std::memcmp(first.data(), y.data(), y.size() * sizeof(float))) << kernel->name << " m=" << m
+                                                                                       << " k=" << k;
+      }
+    }
+}
+
 TEST(PanelGemm, ARowsResultDoesNotDependOnItsBatch) {
   // The server stacks concurrent requests' rows into one GEMM: each row must come out bit for bit as when alone.
   std::mt19937 g(5);

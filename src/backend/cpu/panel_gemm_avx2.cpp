@@ -30,6 +30,26 @@ struct Avx2 {
     lo = _mm256_cvtph_ps(_mm_loadu_si128(reinterpret_cast<const __m128i*>(p)));
     hi = _mm256_cvtph_ps(_mm_loadu_si128(reinterpret_cast<const __m128i*>(p + width)));
   }
+  // 8 steps of up to 8 rows as an 8 x 8 transpose; each step's `rows` values go out in one masked store.
+  static void transpose_block(const float* const* src, int n, int64_t k, float* dst) {
+    __m256 r[8], t[8];
+    for (int i = 0; i < 8; ++i) r[i] = i < n ? _mm256_loadu_ps(src[i] + k) : _mm256_setzero_ps();
+    for (int i = 0; i < 8; i += 2) {
+      t[i] = _mm256_unpacklo_ps(r[i], r[i + 1]);
+      t[i + 1] = _mm256_unpackhi_ps(r[i], r[i + 1]);
+    }
+    for (int i = 0; i < 8; i += 4) {  // r[i + j], 128-bit lane L: rows i..i+3 at column 4L + j
+      r[i] = _mm256_shuffle_ps(t[i], t[i + 2], _MM_SHUFFLE(1, 0, 1, 0));
+      r[i + 1] = _mm256_shuffle_ps(t[i], t[i + 2], _MM_SHUFFLE(3, 2, 3, 2));
+      r[i + 2] = _mm256_shuffle_ps(t[i + 1], t[i + 3], _MM_SHUFFLE(1, 0, 1, 0));
+      r[i + 3] = _mm256_shuffle_ps(t[i + 1], t[i + 3], _MM_SHUFFLE(3, 2, 3, 2));
+    }
+    const __m256i mask = _mm256_cmpgt_epi32(_mm256_set1_epi32(rows), _mm256_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7));
+    for (int j = 0; j < 4; ++j) {
+      _mm256_maskstore_ps(dst + j * rows, mask, _mm256_permute2f128_ps(r[j], r[4 + j], 0x20));
+      _mm256_maskstore_ps(dst + (4 + j) * rows, mask, _mm256_permute2f128_ps(r[j], r[4 + j], 0x31));
+    }
+  }
 };
 
 using Gemm = PanelGemm<Avx2>;

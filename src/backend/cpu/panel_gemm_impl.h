@@ -2,8 +2,9 @@
 // translation unit per ISA (panel_gemm_avx2.cpp, panel_gemm_avx512.cpp, panel_gemm_portable.cpp). V provides:
 //   using reg; static constexpr int width, rows (MR);
 //   zero(), load(const float*), store(float*, reg), broadcast(float), fma(a, b, c) = a*b + c (one rounding),
-//   add(a, b), and widen_row(const T* row, reg& lo, reg& hi): one k step of a panel (NR = 2 * width columns) widened to
-//   float32, for T = float, bf16 (uint16_t, in the paired layout of pack_half_panels) and f16 (uint16_t, tagged F16).
+//   add(a, b), widen_row(const T* row, reg& lo, reg& hi): one k step of a panel (NR = 2 * width columns) widened to
+//   float32, for T = float, bf16 (uint16_t, in the paired layout of pack_half_panels) and f16 (uint16_t, tagged F16),
+//   and transpose_block(rows, n, k, dst): dst[c * MR + r] = rows[r][k + c] for c < width, r < n, and 0 for n <= r < MR.
 #pragma once
 
 #include <omp.h>
@@ -51,13 +52,18 @@ struct PanelGemm {
   // x packed per row tile, k-major: tile t's element (r, k) at xp[(t * K + k) * MR + r]. A k step's MR broadcasts then
   // read one or two cache lines instead of MR rows a row stride apart (strides of 4 KB multiples alias in L1), and the
   // hardware prefetcher follows one stream per tile. Unused slots of a short tile are never read.
+  // V::width steps at a time are transposed in registers (V::transpose_block): element by element, the packing cost
+  // as much as the product itself where N is small (attention's scores times V, N = the head width).
   static void pack_x_tile(const PanelGemmArgs& a, int64_t tiles, int64_t t, float* xp) {
+    static_assert(MR <= V::width, "transpose_block writes one register per k step");
     const RowTile tile = row_tile(a.m, tiles, t);
     float* dst = xp + t * a.k * MR;
-    for (int r = 0; r < tile.rows; ++r) {
-      const float* src = a.x + (tile.first + r) * a.lda;
-      for (int64_t k = 0; k < a.k; ++k) dst[k * MR + r] = src[k];
-    }
+    const float* rows[MR];
+    for (int r = 0; r < tile.rows; ++r) rows[r] = a.x + (tile.first + r) * a.lda;
+    int64_t k = 0;
+    for (; k + V::width <= a.k; k += V::width) V::transpose_block(rows, tile.rows, k, dst + k * MR);
+    for (int r = 0; r < tile.rows; ++r)
+      for (int64_t kk = k; kk < a.k; ++kk) dst[kk * MR + r] = rows[r][kk];
   }
 
   // acc = (first ? (accumulate ? y : 0) : y) + x[rows, k0:k0+kc] W^T; the last block adds the bias.

@@ -52,6 +52,10 @@ struct Portable {
       hi.v[i] = f16_to_f32(p[width + i].bits);
     }
   }
+  static void transpose_block(const float* const* src, int n, int64_t k, float* dst) {
+    for (int c = 0; c < width; ++c)
+      for (int r = 0; r < rows; ++r) dst[c * rows + r] = r < n ? src[r][k + c] : 0.f;
+  }
 };
 
 using Gemm = PanelGemm<Portable>;
