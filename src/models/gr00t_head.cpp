@@ -21,15 +21,22 @@ fs::path gr00t_sidecar(const fs::path& dir, const std::string& name) {
   return dir / "processor" / name;
 }
 
-// processor_config.json's processor_kwargs (the checkpoint's processing settings).
-Json gr00t_processor_kwargs(const fs::path& dir) {
+namespace {
+
+// processor_config.json, checked to hold a processor_kwargs object.
+Json gr00t_processor_config(const fs::path& dir) {
   const fs::path p = gr00t_sidecar(dir, "processor_config.json");
   if (!fs::is_regular_file(p)) throw Error(ErrorCode::not_found, p.string() + ": missing (GR00T's processing settings)");
-  const Json j = read_json_file(p.string());
+  Json j = read_json_file(p.string());
   if (!j.contains("processor_kwargs") || !j.at("processor_kwargs").is_object())
     throw Error(ErrorCode::format, p.string() + ": no processor_kwargs object");
-  return j.at("processor_kwargs");
+  return j;
 }
+
+}  // namespace
+
+// processor_config.json's processor_kwargs (the checkpoint's processing settings).
+Json gr00t_processor_kwargs(const fs::path& dir) { return gr00t_processor_config(dir).at("processor_kwargs"); }
 
 namespace {
 
@@ -222,7 +229,8 @@ void libero_gripper_transform(std::vector<float>& actions, const std::vector<Mod
 }
 
 Gr00tEmbodiment read_gr00t_embodiment(const fs::path& dir, const std::string& wanted) {
-  const Json kwargs = gr00t_processor_kwargs(dir);
+  const Json processor = gr00t_processor_config(dir);
+  const Json& kwargs = processor.at("processor_kwargs");
   const std::string where = gr00t_sidecar(dir, "processor_config.json").string();
   if (!kwargs.contains("modality_configs") || !kwargs.at("modality_configs").is_object() ||
       kwargs.at("modality_configs").empty())
@@ -266,7 +274,7 @@ Gr00tEmbodiment read_gr00t_embodiment(const fs::path& dir, const std::string& wa
   const Json stats = read_json_file(stats_path.string());
   if (!stats.contains(tag)) throw Error(ErrorCode::format, stats_path.string() + ": no statistics for '" + tag + "'");
   // lerobot's N1.7 processor step defaults use_percentiles to true, Isaac-GR00T's Gr00tN1d6Processor to false.
-  const bool n16 = read_json_file(where).value("processor_class", Json("")) == Json("Gr00tN1d6Processor");
+  const bool n16 = processor.value("processor_class", Json("")) == Json("Gr00tN1d6Processor");
   const bool percentiles = json_get_or<bool>(kwargs, "use_percentiles", !n16, where);
   read_groups(m, stats.at(tag), "state", percentiles, stats_path.string(), e.state_groups, e.state_lo, e.state_hi);
   read_groups(m, stats.at(tag), "action", percentiles, stats_path.string(), e.action_groups, e.action_lo, e.action_hi);
