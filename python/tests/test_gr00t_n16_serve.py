@@ -55,9 +55,16 @@ def test_modality_config_and_actions_match_http(server):
         assert cfg["video"]["modality_keys"] == ["front", "wrist"]
         assert cfg["state"]["modality_keys"] == ["arm", "gripper", "base_yaw"]
         assert cfg["action"]["modality_keys"] == ["arm", "gripper"]
+        # As Isaac-GR00T's server answers: the checkpoint's own modality config, action_configs and encodings included.
+        own = json.loads((ROOT / "checkpoint" / "processor_config.json").read_text())
+        for modality, want in own["processor_kwargs"]["modality_configs"]["new_embodiment"].items():
+            assert cfg[modality] == want, modality
+        assert cfg["state"]["sin_cos_embedding_keys"] == ["base_yaw"]
+        assert cfg["action"]["action_configs"][0]["rep"] == "ABSOLUTE"
+        # The observation a client builds from it, the instruction under the checkpoint's language key.
         obs = {"video": {cam: img[None, None] for cam, img in frames().items()},
                "state": {k: np.asarray(v, np.float32)[None, None] for k, v in STATE.items()},
-               "language": {"task": [[TASK]]}}
+               "language": {cfg["language"]["modality_keys"][0]: [[TASK]]}}
         actions, _ = client.get_action(obs, {"seed": 4})
     assert actions["arm"].shape == (1, 8, 6) and actions["gripper"].shape == (1, 8, 1)
     images = {cam: {"data": base64.b64encode(img.tobytes()).decode(), "shape": list(img.shape)}

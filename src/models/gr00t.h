@@ -25,6 +25,7 @@ struct Gr00tEmbodiment {
   std::string tag;
   int64_t id = 0;                    // row of the per-embodiment weights
   std::vector<std::string> cameras;  // video.modality_keys, in the model's order
+  Json modality_config;              // processor_config.json's modality_configs[tag], as it is
   std::vector<ModalityGroup> state_groups, action_groups;
   int64_t action_horizon = 0;        // len(action.delta_indices): the rows a chunk keeps
   // Bounds per group (q01/q99 with use_percentiles, else min/max), concatenated in group order. The action bounds

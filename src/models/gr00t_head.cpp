@@ -250,6 +250,7 @@ Gr00tEmbodiment read_gr00t_embodiment(const fs::path& dir, const std::string& wa
   Gr00tEmbodiment e;
   e.tag = tag;
   const Json& m = modalities.at(tag);
+  e.modality_config = m;
 
   const fs::path ids_path = gr00t_sidecar(dir, "embodiment_id.json");
   if (!fs::is_regular_file(ids_path))
@@ -482,6 +483,7 @@ std::size_t Gr00tModel::add_embodiment(const fs::path& dir, const std::string& t
   ModelSpec& s = em->spec;
   s = shared_spec_;
   s.embodiment = e.tag;
+  s.modality_config = e.modality_config;
   s.cameras = e.cameras;
   s.state_groups = e.state_groups;
   s.action_groups = e.action_groups;

@@ -80,6 +80,10 @@ struct ModelSpec {
   cpu::Precision precision = cpu::Precision::fp32;  // what the linear layers compute in
   // The embodiment served, for checkpoints trained on several (GR00T: a tag of embodiment_id.json); empty otherwise.
   std::string embodiment;
+  // The checkpoint's own modality config for that embodiment ({video, state, action, language}, as GR00T's
+  // processor_config.json holds it), which the GR00T transport reports as Isaac-GR00T's server does; null when the
+  // checkpoint has none.
+  Json modality_config;
   // How a request's RTC leftover steers the sampler; rtc_ramp_rate: the inpainting ramp (GR00T's config).
   RtcMethod rtc = RtcMethod::guidance;
   float rtc_ramp_rate = 0;

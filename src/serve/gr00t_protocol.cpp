@@ -146,22 +146,33 @@ std::size_t group_index(const std::vector<models::ModalityGroup>& groups, const 
   return groups.size();
 }
 
-void write_modality(msgpack::Writer& w, const std::vector<int64_t>& delta, const std::vector<std::string>& keys) {
+// A ModalityConfig as Isaac-GR00T's client decodes it: {"__ModalityConfig_class__": true, "as_json": {its five
+// fields}}. The keys and steps are what this server takes and answers; the encoding fields (sin_cos_embedding_keys,
+// mean_std_embedding_keys, action_configs) are the checkpoint's own (`own`: its modality config) where its keys are
+// the same, else null.
+void write_modality(msgpack::Writer& w, const Json& own, const char* modality, const std::vector<int64_t>& delta,
+                    const std::vector<std::string>& keys) {
+  Json as_json = {{"delta_indices", delta}, {"modality_keys", keys}};
+  const Json* checkpoint = own.is_object() && own.contains(modality) ? &own.at(modality) : nullptr;
+  const bool described = checkpoint && checkpoint->is_object() &&
+                         checkpoint->value("modality_keys", Json()) == as_json.at("modality_keys");
+  for (const char* k : {"sin_cos_embedding_keys", "mean_std_embedding_keys", "action_configs"})
+    as_json[k] = described ? checkpoint->value(k, Json()) : Json();
   w.map(2);
   w.str("__ModalityConfig_class__");
   w.boolean(true);
   w.str("as_json");
-  w.map(5);
-  w.str("delta_indices");
-  w.array(uint32_t(delta.size()));
-  for (int64_t d : delta) w.integer(d);
-  w.str("modality_keys");
-  w.array(uint32_t(keys.size()));
-  for (const auto& k : keys) w.str(k);
-  for (const char* k : {"sin_cos_embedding_keys", "mean_std_embedding_keys", "action_configs"}) {
-    w.str(k);
-    w.nil();
+  msgpack::write_json(w, as_json);
+}
+
+// The instruction's key: the checkpoint's language key (any key is accepted as the instruction), else "task".
+std::vector<std::string> language_keys(const models::ModelSpec& spec) {
+  const Json& own = spec.modality_config;
+  if (own.is_object() && own.contains("language") && own.at("language").is_object()) {
+    const Json keys = own.at("language").value("modality_keys", Json());
+    if (keys.is_array() && keys.size() == 1 && keys.front().is_string()) return {keys.front().get<std::string>()};
   }
+  return {"task"};
 }
 
 }  // namespace
@@ -358,7 +369,7 @@ std::string modality_config_reply(const models::ModelSpec& spec, int64_t action_
   msgpack::Writer w;
   w.map(5);
   w.str("video");
-  write_modality(w, {0}, cameras);
+  write_modality(w, spec.modality_config, "video", {0}, cameras);
   const auto state = models::state_groups(spec);
   const auto action = action_groups_answered(spec, action_dim);
   const auto names = [](const std::vector<models::ModalityGroup>& groups) {
@@ -372,11 +383,11 @@ std::string modality_config_reply(const models::ModelSpec& spec, int64_t action_
     return out;
   };
   w.str("state");
-  write_modality(w, {0}, names(state));
+  write_modality(w, spec.modality_config, "state", {0}, names(state));
   w.str("action");
-  write_modality(w, horizon, names(action));
+  write_modality(w, spec.modality_config, "action", horizon, names(action));
   w.str("language");
-  write_modality(w, {0}, {"task"});
+  write_modality(w, spec.modality_config, "language", {0}, language_keys(spec));
   Json tether = {{"family", spec.family},
                  {"cameras", cameras},
                  {"camera_keys", spec.cameras},

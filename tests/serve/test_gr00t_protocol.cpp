@@ -397,6 +397,68 @@ TEST(Gr00tProtocol, ActionReplySplitsIntoGroupsAndConfigListsThem) {
   EXPECT_EQ(groups_of("action_groups"), (Groups{{"arm", 2}, {"hand", 1}}));
 }
 
+namespace {
+
+// The JSON a msgpack reply of maps, arrays, strings, integers, booleans and nil stands for.
+Json msgpack_to_json(const mp::Value& v) {
+  switch (v.kind) {
+    case mp::Kind::nil: return nullptr;
+    case mp::Kind::boolean: return v.boolean;
+    case mp::Kind::integer: return v.integer;
+    case mp::Kind::str: return std::string(v.bytes);
+    case mp::Kind::array: {
+      Json out = Json::array();
+      for (const auto& item : v.items) out.push_back(msgpack_to_json(item));
+      return out;
+    }
+    case mp::Kind::map: {
+      Json out = Json::object();
+      for (const auto& [k, item] : v.entries) out[std::string(k.bytes)] = msgpack_to_json(item);
+      return out;
+    }
+    default: ADD_FAILURE() << "unexpected msgpack kind"; return nullptr;
+  }
+}
+
+}  // namespace
+
+// A GR00T checkpoint's own modality config travels as Isaac-GR00T's server sends it: its encoding fields
+// (action_configs, sin/cos and mean/std keys) and its language key. Keys the server answers differently (an
+// --embodiment mapping that cuts the output to one group) get null encoding fields, never ones describing other keys.
+TEST(Gr00tProtocol, ModalityConfigCarriesTheCheckpointsOwn) {
+  models::ModelSpec s = two_group_spec();
+  const Json relative = {{"rep", "RELATIVE"}, {"type", "NON_EEF"}, {"format", "DEFAULT"}, {"state_key", "left_arm"}};
+  const Json absolute = {{"rep", "ABSOLUTE"}, {"type", "NON_EEF"}, {"format", "DEFAULT"}, {"state_key", nullptr}};
+  s.modality_config = {
+      {"video", {{"delta_indices", {0}}, {"modality_keys", {"front", "wrist"}}}},
+      {"state",
+       {{"delta_indices", {0}}, {"modality_keys", {"left_arm", "gripper"}}, {"sin_cos_embedding_keys", {"gripper"}}}},
+      {"action",
+       {{"delta_indices", {0, 1, 2, 3}}, {"modality_keys", {"arm", "hand"}}, {"mean_std_embedding_keys", {"hand"}},
+        {"action_configs", {relative, absolute}}, {"sin_cos_embedding_keys", nullptr}}},
+      {"language", {{"delta_indices", {0}}, {"modality_keys", {"annotation.human.task_description"}}}}};
+  const auto as_json = [](const std::string& reply, const char* modality) {
+    return msgpack_to_json(*mp::parse(reply).find(modality)->find("as_json"));
+  };
+  const std::string reply = gr00t::modality_config_reply(s, 3);
+  for (const char* m : {"video", "state", "action", "language"}) {
+    Json want = s.modality_config.at(m);
+    for (const char* k : {"sin_cos_embedding_keys", "mean_std_embedding_keys", "action_configs"})
+      if (!want.contains(k)) want[k] = nullptr;
+    const Json got = as_json(reply, m);
+    EXPECT_EQ(got.size(), want.size()) << m;
+    for (auto it = want.begin(); it != want.end(); ++it) EXPECT_EQ(got.value(it.key(), Json()), it.value()) << m;
+  }
+  // An embodiment mapping answers one 5-value group: the checkpoint's action encodings no longer describe it.
+  s.action_groups = {{"action", 3}};
+  const Json cut = as_json(gr00t::modality_config_reply(s, 5), "action");
+  EXPECT_EQ(cut.at("modality_keys"), Json::array({"action"}));
+  EXPECT_TRUE(cut.at("action_configs").is_null());
+  EXPECT_TRUE(cut.at("mean_std_embedding_keys").is_null());
+  // No checkpoint config (a lerobot checkpoint): "task", and nulls.
+  EXPECT_EQ(as_json(gr00t::modality_config_reply(spec(), 3), "language").at("modality_keys"), Json::array({"task"}));
+}
+
 TEST(Gr00tProtocol, ResetNamesTheEpisodesItEnds) {
   const auto reset = [](const std::function<void(mp::Writer&)>& options) {
     mp::Writer w;
