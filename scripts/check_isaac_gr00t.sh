@@ -13,7 +13,11 @@
 #    a cache directory: the remote code does not import under the oracle's transformers 5. The test
 #    Gr00tN16EagleRelease.ProcessorAndTokenizerMatchTheRealDirectory then compares Tether with what it wrote: pixel
 #    values, prompt ids, and the tokenizer on the shared 1,773-string corpus.
-# Exit status: non-zero when either check fails.
+# 3. python/tests/test_isaac_gr00t_client.py runs Isaac-GR00T's own PolicyClient (gr00t/policy/server_client.py,
+#    imported from the checkout) against `tether serve --gr00t-port` on the N1.6 decode fixture's two embodiments:
+#    the modality config decoded into its ModalityConfig / ActionConfig classes, get_action from the layout its
+#    open-loop evaluation sends, reset, ping, a wrong token and a bad observation.
+# Exit status: non-zero when any check fails.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 [ $# -eq 1 ] && [ -d "$1" ] || { echo "usage: $0 <Isaac-GR00T checkout>" >&2; exit 2; }
@@ -48,3 +52,8 @@ cmake --build build/release --target test_parity >/dev/null
 TETHER_EAGLE_DIR="$eagle" TETHER_EAGLE_EXPECTED="$out" \
   ctest --test-dir build/release -R '^Gr00tN16EagleRelease\.' --output-on-failure -V |
   grep -E '^[0-9]+:   |Passed|Failed|Skipped'
+
+echo "== Isaac-GR00T's PolicyClient against tether serve"
+cmake --build build/release --target tether >/dev/null
+scripts/python_env.sh >/dev/null
+TETHER_ISAAC_GR00T="$isaac" .venv/bin/python -m pytest -q python/tests/test_isaac_gr00t_client.py
