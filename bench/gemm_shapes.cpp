@@ -88,25 +88,27 @@ const GemmShape kPi0Shapes[] = {
     {"expert", "action_time_mlp_out 1024->1024", 50, 1024, 1024, 10},
 };
 
-// GR00T N1.7, 1 camera at 256x256 (256 patches, 64 image tokens, a prompt of about 80 tokens), 4 denoising steps over
-// 41 DiT tokens (the state and 40 actions).
+// GR00T N1.7, as bench/gr00t_cpu.sh runs it: 1 camera, a 640 x 480 frame (models/demo/sample.png) cropped and resized
+// to 352 x 256 (a 22 x 16 patch grid: 352 patches, 88 image tokens) and a prompt of 109 tokens, which the VL
+// self-attention and the DiT's cross-attention K/V also see; 4 denoising steps over 41 DiT tokens (the state and 40
+// actions).
 const GemmShape kGr00tN17Shapes[] = {
-    {"vision", "patch 1536->1024", 256, 1024, 1536, 1},
-    {"vision", "qkv 1024->3072", 256, 3072, 1024, 24},
-    {"vision", "proj 1024->1024", 256, 1024, 1024, 24},
-    {"vision", "fc1 1024->4096", 256, 4096, 1024, 24},
-    {"vision", "fc2 4096->1024", 256, 1024, 4096, 24},
-    {"vision", "merger fc1 4096->4096", 64, 4096, 4096, 4},
-    {"vision", "merger fc2 4096->2048", 64, 2048, 4096, 4},
-    {"text80", "q|k|v 2048->4096", 80, 4096, 2048, 16},
-    {"text80", "o 2048->2048", 80, 2048, 2048, 16},
-    {"text80", "gate/up 2048->12288", 80, 12288, 2048, 16},
-    {"text80", "down 6144->2048", 80, 2048, 6144, 16},
-    {"vl_attn80", "qkv 2048->6144", 80, 6144, 2048, 4},
-    {"vl_attn80", "out 2048->2048", 80, 2048, 2048, 4},
-    {"vl_attn80", "ff1 2048->8192", 80, 8192, 2048, 4},
-    {"vl_attn80", "ff2 8192->2048", 80, 2048, 8192, 4},
-    {"dit", "cross k|v 2048->3072 (M=80)", 80, 3072, 2048, 16},
+    {"vision", "patch 1536->1024", 352, 1024, 1536, 1},
+    {"vision", "qkv 1024->3072", 352, 3072, 1024, 24},
+    {"vision", "proj 1024->1024", 352, 1024, 1024, 24},
+    {"vision", "fc1 1024->4096", 352, 4096, 1024, 24},
+    {"vision", "fc2 4096->1024", 352, 1024, 4096, 24},
+    {"vision", "merger fc1 4096->4096", 88, 4096, 4096, 4},
+    {"vision", "merger fc2 4096->2048", 88, 2048, 4096, 4},
+    {"text109", "q|k|v 2048->4096", 109, 4096, 2048, 16},
+    {"text109", "o 2048->2048", 109, 2048, 2048, 16},
+    {"text109", "gate/up 2048->12288", 109, 12288, 2048, 16},
+    {"text109", "down 6144->2048", 109, 2048, 6144, 16},
+    {"vl_attn109", "qkv 2048->6144", 109, 6144, 2048, 4},
+    {"vl_attn109", "out 2048->2048", 109, 2048, 2048, 4},
+    {"vl_attn109", "ff1 2048->8192", 109, 8192, 2048, 4},
+    {"vl_attn109", "ff2 8192->2048", 109, 2048, 8192, 4},
+    {"dit", "cross k|v 2048->3072 (M=109)", 109, 3072, 2048, 16},
     {"dit", "cross q 1536->1536", 41, 1536, 1536, 16 * 4},
     {"dit", "self qkv 1536->4608", 41, 4608, 1536, 16 * 4},
     {"dit", "out 1536->1536", 41, 1536, 1536, 32 * 4},
