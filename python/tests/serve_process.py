@@ -41,6 +41,17 @@ def binary_path() -> Path:
     return path if path.is_absolute() else REPO / path
 
 
+def hub_cache_holding(hub: Path, repo_id: str, snapshot: Path) -> Path:
+    """Lays out `hub` as a Hugging Face hub cache whose `repo_id` (main) is the directory `snapshot`; returns `hub`.
+    A checkpoint naming a repository the hub cannot serve here (e.g. GR00T N1.6's Eagle directory) finds it there."""
+    repo = hub / ("models--" + repo_id.replace("/", "--"))
+    (repo / "snapshots").mkdir(parents=True)
+    (repo / "refs").mkdir()
+    (repo / "refs" / "main").write_text("main")
+    (repo / "snapshots" / "main").symlink_to(snapshot)
+    return hub
+
+
 class ServeProcess:
     """One `tether serve` child. Reads the port from the `listening on` line; :meth:`stop` sends SIGTERM."""
 

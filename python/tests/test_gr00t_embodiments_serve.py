@@ -110,6 +110,10 @@ def test_config_and_health_describe_each_embodiment(multi):
     other = json.loads(request(multi.port, "GET", "/config?embodiment_tag=new_embodiment")[2])
     assert other["embodiment"] == "new_embodiment"
     assert other["cameras"] == ["front", "wrist"] and other["state_dim"] == 9 and other["action_dim"] == 7
+    assert [g["name"] for g in other["state_groups"]] == ["arm", "gripper", "base"]
+    assert other["action_groups"] == [{"name": "arm", "dim": 6}, {"name": "gripper", "dim": 1}]
+    assert other["modality_config"]["action"]["modality_keys"] == ["arm", "gripper"]
+    assert cfg["modality_config"]["video"]["modality_keys"] == ["image"]
     status, _, raw = request(multi.port, "GET", "/config?embodiment_tag=nope")
     assert status == 400 and json.loads(raw)["error"]["code"] == "unknown_embodiment"
     health = json.loads(request(multi.port, "GET", "/health")[2])

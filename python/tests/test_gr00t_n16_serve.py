@@ -14,7 +14,7 @@ msgpack = pytest.importorskip("msgpack")
 zmq = pytest.importorskip("zmq")
 
 from pngutil import decode_png_rgb8  # noqa: E402
-from serve_process import REPO, ServeProcess, binary_path, request  # noqa: E402
+from serve_process import REPO, ServeProcess, binary_path, hub_cache_holding, request  # noqa: E402
 from zmq_clients import Gr00tClient  # noqa: E402
 
 pytestmark = [
@@ -31,12 +31,7 @@ TASK = "pick up the red cube"
 @pytest.fixture(scope="module")
 def server(tmp_path_factory):
     # The checkpoint names Isaac-GR00T's Eagle directory; a hub cache holds the fixture's stand-in under that id.
-    hub = tmp_path_factory.mktemp("eagle_hub")
-    repo = hub / "models--nvidia--Eagle-Block2A-2B-v2"
-    (repo / "snapshots").mkdir(parents=True)
-    (repo / "refs").mkdir()
-    (repo / "refs" / "main").write_text("main")
-    (repo / "snapshots" / "main").symlink_to(ROOT / "eagle")
+    hub = hub_cache_holding(tmp_path_factory.mktemp("eagle_hub"), "nvidia/Eagle-Block2A-2B-v2", ROOT / "eagle")
     proc = ServeProcess(["--gr00t-port", "0", "--embodiment-tag", "new_embodiment"], env={"HF_HUB_CACHE": str(hub)},
                         checkpoint=ROOT / "checkpoint")
     try:
@@ -77,3 +72,7 @@ def test_modality_config_and_actions_match_http(server):
     np.testing.assert_array_equal(np.concatenate([actions["arm"][0], actions["gripper"][0]], axis=1), http)
     cfg = json.loads(request(server.port, "GET", "/config")[2])
     assert cfg["family"] == "gr00t_n16"
+    assert cfg["state_groups"] == [{"name": "arm", "dim": 6}, {"name": "gripper", "dim": 1},
+                                   {"name": "base_yaw", "dim": 1}]
+    assert cfg["action_groups"] == [{"name": "arm", "dim": 6}, {"name": "gripper", "dim": 1}]
+    assert cfg["modality_config"] == own["processor_kwargs"]["modality_configs"]["new_embodiment"]

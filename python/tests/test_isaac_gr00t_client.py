@@ -21,13 +21,12 @@ import base64
 import json
 import os
 import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
 
 from pngutil import decode_png_rgb8
-from serve_process import REPO, ServeProcess, binary_path, request
+from serve_process import REPO, ServeProcess, binary_path, hub_cache_holding, request
 
 ISAAC = os.environ.get("TETHER_ISAAC_GR00T", "")
 pytestmark = [
@@ -56,12 +55,7 @@ def isaac():
 @pytest.fixture(scope="module")
 def server(tmp_path_factory):
     # The checkpoint names Isaac-GR00T's Eagle directory; a hub cache holds the fixture's stand-in under that id.
-    hub = tmp_path_factory.mktemp("eagle_hub")
-    repo = hub / "models--nvidia--Eagle-Block2A-2B-v2"
-    (repo / "snapshots").mkdir(parents=True)
-    (repo / "refs").mkdir()
-    (repo / "refs" / "main").write_text("main")
-    (repo / "snapshots" / "main").symlink_to(EAGLE)
+    hub = hub_cache_holding(tmp_path_factory.mktemp("eagle_hub"), "nvidia/Eagle-Block2A-2B-v2", EAGLE)
     proc = ServeProcess(["--gr00t-port", "0", "--embodiment-tag", "relative_arm,mean_std_arm"],
                         env={"HF_HUB_CACHE": str(hub), "TETHER_API_KEY": KEY}, checkpoint=ROOT / "checkpoint")
     try:

@@ -379,6 +379,10 @@ def test_config_fields(server):
     assert cfg["family"] == "smolvla"
     assert cfg["cameras"] == [CAMERA]
     assert (cfg["state_dim"], cfg["action_dim"], cfg["chunk_size"], cfg["num_steps"]) == (6, 6, 50, 10)
+    # A lerobot checkpoint: one group of each, named after its features, and no modality config of its own.
+    assert cfg["state_groups"] == [{"name": "state", "dim": 6}]
+    assert cfg["action_groups"] == [{"name": "action", "dim": 6}]
+    assert cfg["modality_config"] is None
     assert isinstance(cfg["normalization"], list) and cfg["normalization"]
     assert all(isinstance(line, str) for line in cfg["normalization"])
     assert isinstance(cfg["weights_dtype"], str) and cfg["weights_dtype"]

@@ -156,6 +156,9 @@ void set_single_groups(ModelSpec& spec);
 // The spec's groups, or its single groups when it lists none.
 std::vector<ModalityGroup> state_groups(const ModelSpec& spec);
 std::vector<ModalityGroup> action_groups(const ModelSpec& spec);
+// The action groups of what a server answers with `action_dim` values per step: the spec's, a single group taking
+// that width (an embodiment mapping may cut a padded output to its joints).
+std::vector<ModalityGroup> answered_action_groups(const ModelSpec& spec, int64_t action_dim);
 
 // Standard-normal noise from a seed: the same seed gives the same noise on every platform (explicit
 // Box-Muller over a 64-bit Mersenne Twister, not std::normal_distribution, whose algorithm varies).

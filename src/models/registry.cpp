@@ -88,6 +88,12 @@ std::vector<ModalityGroup> action_groups(const ModelSpec& spec) {
   return single.action_groups;
 }
 
+std::vector<ModalityGroup> answered_action_groups(const ModelSpec& spec, int64_t action_dim) {
+  std::vector<ModalityGroup> groups = action_groups(spec);
+  if (groups.size() == 1) groups.front().dim = action_dim;
+  return groups;
+}
+
 CheckpointProbe probe_checkpoint(const fs::path& dir) {
   CheckpointProbe p{dir, Json(nullptr)};
   if (fs::is_regular_file(dir / "config.json")) p.config = read_json_file((dir / "config.json").string());

@@ -371,7 +371,7 @@ std::string modality_config_reply(const models::ModelSpec& spec, int64_t action_
   w.str("video");
   write_modality(w, spec.modality_config, "video", {0}, cameras);
   const auto state = models::state_groups(spec);
-  const auto action = action_groups_answered(spec, action_dim);
+  const auto action = models::answered_action_groups(spec, action_dim);
   const auto names = [](const std::vector<models::ModalityGroup>& groups) {
     std::vector<std::string> out;
     for (const auto& g : groups) out.push_back(g.name);
@@ -440,13 +440,6 @@ std::vector<std::string> reset_episodes(const Call& call) {
     ids.emplace_back(item.bytes);
   }
   return ids;
-}
-
-std::vector<models::ModalityGroup> action_groups_answered(const models::ModelSpec& spec, int64_t action_dim) {
-  std::vector<models::ModalityGroup> groups = models::action_groups(spec);
-  // One group takes what the server answers, also when an embodiment cut the model's padded output to its joints.
-  if (groups.size() == 1) groups.front().dim = action_dim;
-  return groups;
 }
 
 std::string action_reply(const std::vector<models::ModalityGroup>& groups, bool flat, int64_t batch, int64_t rows,

@@ -53,9 +53,6 @@ std::string call_embodiment(const Call& call);
 // "" that get_action calls without an episode_id share. Throws HttpError(400, invalid_field).
 std::vector<std::string> reset_episodes(const Call& call);
 
-// The action groups a reply is split into (models::action_groups); a single group takes the `action_dim` the server
-// answers with (an embodiment may cut a padded output to its joints).
-std::vector<models::ModalityGroup> action_groups_answered(const models::ModelSpec& spec, int64_t action_dim);
 // A camera's name on the wire: the checkpoint's key without spec.camera_prefix.
 std::string camera_name(const std::string& key, const models::ModelSpec& spec);
 

@@ -61,7 +61,7 @@ void finish(GetAction& g) {
     items.push_back(std::move(item));
   }
   // Items answered: the model is loaded.
-  const auto groups = gr00t::action_groups_answered(g.host->engine().spec, dim);
+  const auto groups = models::answered_action_groups(g.host->engine().spec, dim);
   g.reply(gr00t::action_reply(groups, g.layout.flat, batch, rows, dim, actions, items));
 }
 

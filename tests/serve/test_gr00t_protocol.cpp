@@ -268,7 +268,7 @@ TEST(Gr00tProtocol, Replies) {
 
   std::vector<float> actions(2 * 4 * 3);
   for (std::size_t i = 0; i < actions.size(); ++i) actions[i] = float(i);
-  const std::string reply = gr00t::action_reply(gr00t::action_groups_answered(spec(), 3), true, 2, 4, 3, actions,
+  const std::string reply = gr00t::action_reply(models::answered_action_groups(spec(), 3), true, 2, 4, 3, actions,
                                                 Json::array({Json::object(), Json::object()}));
   const mp::Value r = mp::parse(reply);
   ASSERT_TRUE(r.is_array());
@@ -355,7 +355,7 @@ TEST(Gr00tProtocol, ActionReplySplitsIntoGroupsAndConfigListsThem) {
   const models::ModelSpec s = two_group_spec();
   std::vector<float> actions(2 * 4 * 3);
   for (std::size_t i = 0; i < actions.size(); ++i) actions[i] = float(i);
-  const auto groups = gr00t::action_groups_answered(s, 3);
+  const auto groups = models::answered_action_groups(s, 3);
   for (const bool flat : {false, true}) {
     const std::string reply = gr00t::action_reply(groups, flat, 2, 4, 3, actions, Json::array());
     const mp::Value r = mp::parse(reply);
