@@ -68,20 +68,23 @@ struct PanelGemm {
 
   // acc = (first ? (accumulate ? y : 0) : y) + x[rows, k0:k0+kc] W^T; the last block adds the bias.
   // Each element's k loop runs in index order with one rounding per step, whatever `rows` is.
-  // `prefetch` (or null): the panel block the thread reads next, fetched one k step per k step so that it is in cache
-  // when its first tile starts (with 50 rows a block serves only 4 tiles, and the first one would wait on memory).
+  // `prefetch` (or null): the first `prefetch_rows` k steps of a slice of the panel block the thread reads next,
+  // fetched one k step per k step at the start of this tile. Each tile of a row block fetches its own slice, so the
+  // next block is in cache when its first tile starts (with 50 rows a block serves only 4 tiles, and the first one
+  // would wait on memory) without one tile asking for all of it at once: a 64 KB block requested during one tile
+  // exhausts the core's outstanding-miss slots when the weights stream from memory, and stalls that tile.
   // `y_next` (or null): the output tile that follows, whose rows (MR rows a row stride apart, often in L3 by then) are
   // fetched during this tile's first 2 * MR k steps so that its accumulator loads do not wait on them.
   template <class T, int R>
   static void tile(const float* x, const T* panel, int64_t kc, const float* bias, float* y, int64_t ldy, bool load_y,
-                   bool last, const T* prefetch, const float* y_next) {
+                   bool last, const T* prefetch, int64_t prefetch_rows, const float* y_next) {
     reg acc[R][2];
     for (int r = 0; r < R; ++r) {
       acc[r][0] = load_y ? V::load(y + r * ldy) : V::zero();
       acc[r][1] = load_y ? V::load(y + r * ldy + V::width) : V::zero();
     }
     for (int64_t k = 0; k < kc; ++k) {
-      if (prefetch)
+      if (k < prefetch_rows)
         for (std::size_t line = 0; line < NR * sizeof(T); line += 64)
           __builtin_prefetch(reinterpret_cast<const char*>(prefetch + k * NR) + line);
       if (y_next && k < 2 * MR) __builtin_prefetch(y_next + (k >> 1) * ldy + (k & 1) * (NR / 2), 1);
@@ -108,10 +111,10 @@ struct PanelGemm {
 
   template <class T, int R>
   static void tile_rows(int rows, const float* x, const T* panel, int64_t kc, const float* bias, float* y, int64_t ldy,
-                        bool load_y, bool last, const T* prefetch, const float* y_next) {
+                        bool load_y, bool last, const T* prefetch, int64_t prefetch_rows, const float* y_next) {
     if constexpr (R > 0) {
-      if (rows == R) return tile<T, R>(x, panel, kc, bias, y, ldy, load_y, last, prefetch, y_next);
-      return tile_rows<T, R - 1>(rows, x, panel, kc, bias, y, ldy, load_y, last, prefetch, y_next);
+      if (rows == R) return tile<T, R>(x, panel, kc, bias, y, ldy, load_y, last, prefetch, prefetch_rows, y_next);
+      return tile_rows<T, R - 1>(rows, x, panel, kc, bias, y, ldy, load_y, last, prefetch, prefetch_rows, y_next);
     }
   }
 
@@ -133,14 +136,16 @@ struct PanelGemm {
           const T* panel = panels + p * a.k * NR + k0 * NR;
           const float* bias = a.bias + p * NR;
           const int64_t cols = min(NR, a.n - p * NR);
-          // The next panel's block of the same k range, which the first tile fetches (the range's last panel has
-          // no successor here; the next k range starts with a fresh stream).
+          // The next panel's block of the same k range, which the block's tiles fetch a slice each (the range's
+          // last panel has no successor here; the next k range starts with a fresh stream).
           const T* next = p + 1 < p1 ? panel + a.k * NR : nullptr;
           for (int64_t t = t0; t < t1; ++t) {
             const RowTile tile = row_tile(a.m, tiles, t);
             const float* x = xp + (t * a.k + k0) * MR;
             float* y = a.y + tile.first * a.ldy + p * NR;
-            const T* prefetch = t == t0 ? next : nullptr;
+            const int64_t slice0 = kc * (t - t0) / (t1 - t0), slice1 = kc * (t - t0 + 1) / (t1 - t0);
+            const T* prefetch = next ? next + slice0 * NR : nullptr;
+            const int64_t prefetch_rows = next ? slice1 - slice0 : 0;
             // The output tile after this one, when this block reads y at all: the next row tile, or the block's first
             // one in the next panel.
             const float* y_next = nullptr;
@@ -149,13 +154,13 @@ struct PanelGemm {
               else if (p + 1 < p1 && (p + 1) * NR < a.n) y_next = a.y + row_tile(a.m, tiles, t0).first * a.ldy + (p + 1) * NR;
             }
             if (cols == NR) {
-              tile_rows<T, MR>(tile.rows, x, panel, kc, bias, y, a.ldy, load_y, last, prefetch, y_next);
+              tile_rows<T, MR>(tile.rows, x, panel, kc, bias, y, a.ldy, load_y, last, prefetch, prefetch_rows, y_next);
             } else {
               for (int r = 0; r < tile.rows; ++r) {
                 if (load_y) std::memcpy(edge + r * NR, y + r * a.ldy, std::size_t(cols) * sizeof(float));
                 std::memset(edge + r * NR + cols, 0, std::size_t(NR - cols) * sizeof(float));
               }
-              tile_rows<T, MR>(tile.rows, x, panel, kc, bias, edge, NR, load_y, last, prefetch, nullptr);
+              tile_rows<T, MR>(tile.rows, x, panel, kc, bias, edge, NR, load_y, last, prefetch, prefetch_rows, nullptr);
               for (int r = 0; r < tile.rows; ++r)
                 std::memcpy(y + r * a.ldy, edge + r * NR, std::size_t(cols) * sizeof(float));
             }
