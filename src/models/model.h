@@ -159,6 +159,8 @@ std::vector<ModalityGroup> action_groups(const ModelSpec& spec);
 // The action groups of what a server answers with `action_dim` values per step: the spec's, a single group taking
 // that width (an embodiment mapping may cut a padded output to its joints).
 std::vector<ModalityGroup> answered_action_groups(const ModelSpec& spec, int64_t action_dim);
+// Groups as JSON, [{name, dim}] in concatenation order (what /config and the GR00T transport report).
+Json groups_json(const std::vector<ModalityGroup>& groups);
 
 // Standard-normal noise from a seed: the same seed gives the same noise on every platform (explicit
 // Box-Muller over a 64-bit Mersenne Twister, not std::normal_distribution, whose algorithm varies).

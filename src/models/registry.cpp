@@ -88,6 +88,12 @@ std::vector<ModalityGroup> action_groups(const ModelSpec& spec) {
   return single.action_groups;
 }
 
+Json groups_json(const std::vector<ModalityGroup>& groups) {
+  Json out = Json::array();
+  for (const auto& g : groups) out.push_back({{"name", g.name}, {"dim", g.dim}});
+  return out;
+}
+
 std::vector<ModalityGroup> answered_action_groups(const ModelSpec& spec, int64_t action_dim) {
   std::vector<ModalityGroup> groups = action_groups(spec);
   if (groups.size() == 1) groups.front().dim = action_dim;

@@ -377,11 +377,6 @@ std::string modality_config_reply(const models::ModelSpec& spec, int64_t action_
     for (const auto& g : groups) out.push_back(g.name);
     return out;
   };
-  const auto dims = [](const std::vector<models::ModalityGroup>& groups) {
-    Json out = Json::array();
-    for (const auto& g : groups) out.push_back({{"name", g.name}, {"dim", g.dim}});
-    return out;
-  };
   w.str("state");
   write_modality(w, spec.modality_config, "state", {0}, names(state));
   w.str("action");
@@ -393,8 +388,8 @@ std::string modality_config_reply(const models::ModelSpec& spec, int64_t action_
                  {"camera_keys", spec.cameras},
                  {"state_dim", spec.state_dim},
                  {"action_dim", action_dim},
-                 {"state_groups", dims(state)},
-                 {"action_groups", dims(action)},
+                 {"state_groups", models::groups_json(state)},
+                 {"action_groups", models::groups_json(action)},
                  {"chunk_size", spec.chunk_size},
                  {"image_height", spec.image_height},
                  {"image_width", spec.image_width}};

@@ -22,13 +22,6 @@ Json circuit_json(const runtime::CircuitBreaker& b) {
           {"retry_after_s", b.retry_after_s()}};
 }
 
-// [{name, dim}], in concatenation order.
-Json groups_json(const std::vector<models::ModalityGroup>& groups) {
-  Json out = Json::array();
-  for (const auto& g : groups) out.push_back({{"name", g.name}, {"dim", g.dim}});
-  return out;
-}
-
 }  // namespace
 
 Json Router::health_json(HealthState s) const {
@@ -62,8 +55,8 @@ Json Router::config_json(const ModelHost& host) const {
           {"stages", s.stages},
           {"state_dim", s.state_dim},
           {"action_dim", host.wedges().action_dim()},  // what /act answers (an embodiment may cut a padded output)
-          {"state_groups", groups_json(models::state_groups(s))},
-          {"action_groups", groups_json(models::answered_action_groups(s, host.wedges().action_dim()))},
+          {"state_groups", models::groups_json(models::state_groups(s))},
+          {"action_groups", models::groups_json(models::answered_action_groups(s, host.wedges().action_dim()))},
           {"modality_config", s.modality_config},
           {"chunk_size", s.chunk_size},
           {"num_steps", s.num_steps},
