@@ -21,9 +21,13 @@ struct Avx2 {
     hi = _mm256_loadu_ps(p + width);
   }
   // bf16 is the top half of a float32; a paired row holds columns j (low half) and j + 8 (high half) in one word.
+  // The low word moves up by a byte shuffle, not a shift: on Intel cores a vector shift issues only on the two ports
+  // that run the k step's 12 FMAs, and the shuffle also on port 5 (bench/GEMM.md, the bf16 widening on AVX2).
   static void widen_row(const uint16_t* p, reg& lo, reg& hi) {
     const __m256i w = _mm256_loadu_si256(reinterpret_cast<const __m256i*>(p));
-    lo = _mm256_castsi256_ps(_mm256_slli_epi32(w, 16));
+    const __m256i low_word_up = _mm256_setr_epi8(-1, -1, 0, 1, -1, -1, 4, 5, -1, -1, 8, 9, -1, -1, 12, 13,  //
+                                                 -1, -1, 0, 1, -1, -1, 4, 5, -1, -1, 8, 9, -1, -1, 12, 13);
+    lo = _mm256_castsi256_ps(_mm256_shuffle_epi8(w, low_word_up));
     hi = _mm256_castsi256_ps(_mm256_and_si256(w, _mm256_set1_epi32(int(0xFFFF0000u))));
   }
   static void widen_row(const F16* p, reg& lo, reg& hi) {
