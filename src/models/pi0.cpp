@@ -21,6 +21,7 @@
 #include "models/blocks/linear.h"
 #include "models/blocks/sampler.h"
 #include "models/blocks/vision_tower.h"
+#include "models/lerobot/checkpoint.h"
 #include "text/tokenizer.h"
 #include "vision/preprocess.h"
 
@@ -307,8 +308,10 @@ PiZero::PiZero(const fs::path& dir, const Json& config, TensorStore store, const
   if (resolution.size() != 2 || resolution[0] != resolution[1] || resolution[0] <= 0)
     throw Error(ErrorCode::format, where + ": image_resolution must be a square [size, size] (PaliGemma's)");
   spec_.image_height = spec_.image_width = resolution[0];
-  if (json_get_or<bool>(config, "use_relative_actions", false, where))
-    throw Error(ErrorCode::unsupported, where + ": use_relative_actions is not supported yet");
+  // use_relative_actions: the processor pipelines decide, as lerobot loads them; the policy's post-processing adds the
+  // state back (lerobot::read_relative_actions), and a previous chunk's leftover does not carry over (no RTC).
+  std::vector<std::string> relative_warnings;  // reported with the normaliser's
+  spec_.relative_actions = !lerobot::read_relative_actions(dir.string(), config, relative_warnings).empty();
 
   // Features: cameras in input_features order (as upstream iterates image_features), the config's empty cameras
   // after them (validate_features adds them, and a saved config may already list them).

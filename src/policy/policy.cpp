@@ -23,7 +23,7 @@ models::DenoiseControl denoise_control(const Observation& o, const models::Model
   c.adaptive_threshold = o.adaptive_threshold;
   if (!o.rtc) return c;
   if (s.relative_actions)
-    fail("rtc: this embodiment predicts actions relative to the state, so a previous chunk's leftover does not "
+    fail("rtc: this policy predicts actions relative to the state, so a previous chunk's leftover does not "
          "carry over; real-time chunking is off for it");
   const Observation::Rtc& r = *o.rtc;
   const int64_t A = s.action_dim, C = s.chunk_size, values = int64_t(r.prev_actions.size());

@@ -180,7 +180,7 @@ ActPipeline::Act ActPipeline::parse(const ActInput& input, const RequestContext&
     throw HttpError(400, "invalid_field", "rtc: this server runs without --rtc (real-time chunking is off)");
   if (a.parsed.rtc && engine.spec.relative_actions)
     throw HttpError(400, "invalid_field",
-                    "rtc: this embodiment predicts actions relative to the state, so a previous chunk's leftover does "
+                    "rtc: this policy predicts actions relative to the state, so a previous chunk's leftover does "
                     "not carry over; real-time chunking is off for it");
   a.parse_ms = ms_since(t_parse);
 

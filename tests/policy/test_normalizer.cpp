@@ -136,3 +136,118 @@ TEST(Normalizer, RelativeGroupsAreMadeAbsoluteAgainstTheState) {
   EXPECT_TRUE(n.has_relative());
   EXPECT_FALSE(Normalizer(models::NormalizationSpec{}).has_relative());
 }
+
+namespace {
+
+// A lerobot checkpoint's pipelines with relative actions: `relative` is the preprocessor's relative_actions_processor
+// config (null: no such step), placed after the normalizer when `after_normalizer`; `absolute` the postprocessor's
+// absolute_actions_processor enabled flag (null: no such step). State 4 wide, action 3 wide unless given.
+struct RelativeCase {
+  Json relative = Json{{"enabled", true}, {"exclude_joints", {"gripper"}}, {"action_names", nullptr}};
+  Json absolute = true;
+  bool after_normalizer = false;
+  int64_t state_dim = 4, action_dim = 3;
+};
+
+fs::path write_relative_checkpoint(const std::string& name, const RelativeCase& c, Json& config) {
+  const fs::path dir = tether::testing::scratch_dir() / "relative" / name;
+  fs::create_directories(dir);
+  Json pre = Json::array(), post = Json::array();
+  const Json normalizer = {{"registry_name", "normalizer_processor"}, {"config", Json::object()}};
+  if (c.after_normalizer) pre.push_back(normalizer);
+  if (!c.relative.is_null()) pre.push_back({{"registry_name", "relative_actions_processor"}, {"config", c.relative}});
+  if (!c.after_normalizer) pre.push_back(normalizer);
+  post.push_back({{"registry_name", "unnormalizer_processor"}, {"config", Json::object()}});
+  if (!c.absolute.is_null())
+    post.push_back({{"registry_name", "absolute_actions_processor"}, {"config", {{"enabled", c.absolute}}}});
+  std::ofstream(dir / "policy_preprocessor.json") << Json{{"name", "policy_preprocessor"}, {"steps", pre}}.dump();
+  std::ofstream(dir / "policy_postprocessor.json") << Json{{"name", "policy_postprocessor"}, {"steps", post}}.dump();
+  config = {{"type", "pi0"},
+            {"input_features", {{"observation.state", {{"type", "STATE"}, {"shape", {c.state_dim}}}}}},
+            {"output_features", {{"action", {{"type", "ACTION"}, {"shape", {c.action_dim}}}}}}};
+  return dir;
+}
+
+std::vector<models::RelativeAction> relative_of(const std::string& name, const RelativeCase& c,
+                                                std::vector<std::string>* warnings = nullptr) {
+  Json config;
+  const fs::path dir = write_relative_checkpoint(name, c, config);
+  std::vector<std::string> ignored;
+  return models::lerobot::read_relative_actions(dir.string(), config, warnings ? *warnings : ignored);
+}
+
+}  // namespace
+
+// lerobot's RelativeActionsProcessorStep mask: every column converts unless both exclude_joints and action_names are
+// given; a name is excluded when a token (case-insensitive) equals it or is part of it; columns past the names convert.
+TEST(LerobotRelativeActions, ColumnsFollowTheExcludedNames) {
+  RelativeCase all;  // exclude_joints without action_names: every column
+  auto groups = relative_of("all", all);
+  ASSERT_EQ(groups.size(), 1u);
+  EXPECT_EQ(groups[0].action_offset, 0);
+  EXPECT_EQ(groups[0].state_offset, 0);
+  EXPECT_EQ(groups[0].dim, 3);
+  EXPECT_EQ(groups[0].kind, models::RelativeAction::Kind::joint);
+
+  RelativeCase named;
+  named.action_dim = 4;
+  named.relative["exclude_joints"] = {"GRIPPER", "", nullptr};
+  named.relative["action_names"] = {"shoulder", "left_Gripper", "elbow"};  // the 4th column has no name: converts
+  groups = relative_of("named", named);
+  ASSERT_EQ(groups.size(), 2u);
+  EXPECT_EQ(groups[0].action_offset, 0);
+  EXPECT_EQ(groups[0].dim, 1);
+  EXPECT_EQ(groups[0].name, "shoulder");
+  EXPECT_EQ(groups[1].action_offset, 2);
+  EXPECT_EQ(groups[1].state_offset, 2);
+  EXPECT_EQ(groups[1].dim, 2);
+
+  RelativeCase none_named = named;  // only empty tokens: every column
+  none_named.relative["exclude_joints"] = {""};
+  groups = relative_of("none_named", none_named);
+  ASSERT_EQ(groups.size(), 1u);
+  EXPECT_EQ(groups[0].dim, 4);
+
+  // The whole chain: unnormalised actions plus the state's converted columns.
+  const models::NormalizationSpec spec{{}, 1e-8f, relative_of("named_chain", named)};
+  std::vector<float> actions = {1, 2, 3, 4, 10, 20, 30, 40};
+  Normalizer(spec).to_absolute(actions.data(), 2, 4, {0.5f, 0.25f, -1, 8});
+  EXPECT_EQ(actions, (std::vector<float>{1.5f, 2, 2, 12, 10.5f, 20, 29, 48}));
+}
+
+TEST(LerobotRelativeActions, OnlyAnEnabledAbsoluteStepConverts) {
+  RelativeCase off;
+  off.absolute = false;
+  std::vector<std::string> warnings;
+  EXPECT_TRUE(relative_of("off", off, &warnings).empty());
+  ASSERT_EQ(warnings.size(), 1u);  // trained relative, answered as predicted
+  EXPECT_NE(warnings[0].find("does not make them absolute"), std::string::npos) << warnings[0];
+
+  RelativeCase absent;
+  absent.absolute = nullptr;
+  absent.relative["enabled"] = false;
+  warnings.clear();
+  EXPECT_TRUE(relative_of("absent", absent, &warnings).empty());
+  EXPECT_TRUE(warnings.empty());
+}
+
+// Where lerobot fails at every inference (or would add a normalised state), loading fails and names the file.
+TEST(LerobotRelativeActions, UnusablePipelinesAreRefused) {
+  auto refused = [](const std::string& name, const RelativeCase& c, const std::string& words) {
+    try {
+      relative_of(name, c);
+      ADD_FAILURE() << name << ": loaded";
+    } catch (const Error& e) {
+      EXPECT_NE(std::string(e.what()).find(words), std::string::npos) << e.what();
+    }
+  };
+  RelativeCase unpaired;
+  unpaired.relative = nullptr;
+  refused("unpaired", unpaired, "no relative_actions_processor");
+  RelativeCase late;
+  late.after_normalizer = true;
+  refused("late", late, "runs after normalizer_processor");
+  RelativeCase narrow;
+  narrow.state_dim = 2;
+  refused("narrow", narrow, "the state has 2 values and the action 3");
+}

@@ -179,6 +179,32 @@ std::string test_name(const ::testing::TestParamInfo<std::string>& info) {
 
 INSTANTIATE_TEST_SUITE_P(Fixtures, PiParity, ::testing::ValuesIn(cases()), test_name);
 
+// use_relative_actions (the cam1_relative cases, compared with upstream above): the policy says which columns take the
+// state, and refuses a real-time-chunking leftover, which was made absolute against an older state.
+TEST(PiRelativeActions, ColumnsAreNamedAndRtcIsRefused) {
+  for (const char* name : {"pi0/cam1_relative", "pi05/cam1_relative"}) {
+    use_paligemma_hub();
+    const fs::path dir = fs::path(TETHER_FIXTURES_DIR) / name;
+    auto policy = policy::Policy::load((dir / "checkpoint").string());
+    EXPECT_TRUE(policy->spec().relative_actions) << name;
+    EXPECT_TRUE(policy->output_normalizer().has_relative()) << name;
+    std::string described;
+    for (const auto& line : policy->output_normalizer().describe()) described += line + "\n";
+    const std::string first = std::string(name) == "pi0/cam1_relative" ? "shoulder_pan, shoulder_lift, elbow" : "j0, j1";
+    EXPECT_NE(described.find("action '" + first + "': relative to the state"), std::string::npos) << described;
+    policy::Observation o = policy::synthetic_observation(policy->spec());
+    o.rtc = policy::Observation::Rtc{};
+    o.rtc->prev_actions.assign(std::size_t(policy->spec().action_dim * 2), 0.5f);
+    try {
+      policy->predict({o});
+      ADD_FAILURE() << name << ": an RTC leftover was accepted";
+    } catch (const Error& e) {
+      EXPECT_EQ(e.code(), ErrorCode::invalid_argument);
+      EXPECT_NE(std::string(e.what()).find("relative to the state"), std::string::npos) << e.what();
+    }
+  }
+}
+
 TEST(PiParityFixtures, Present) {
   int pi0 = 0, pi05 = 0, fluxvla = 0;
   for (const auto& c : cases()) (c.rfind("pi05/", 0) == 0 ? pi05 : c.rfind("pi05_fluxvla/", 0) == 0 ? fluxvla : pi0)++;

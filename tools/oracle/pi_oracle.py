@@ -222,7 +222,8 @@ def make_config(fam: Family, spec: dict):
         image_resolution=(spec["resolution"], spec["resolution"]),
         push_to_hub=False,
     )
-    for key in ("max_state_dim", "max_action_dim", "tokenizer_max_length", "empty_cameras", "dtype"):
+    for key in ("max_state_dim", "max_action_dim", "tokenizer_max_length", "empty_cameras", "dtype",
+                "use_relative_actions", "relative_exclude_joints", "action_feature_names"):
         if key in spec:
             kwargs[key] = spec[key]
     return fam.config_cls(**kwargs)
@@ -579,6 +580,24 @@ PI0_CASES = {
         stats=True,
         instructions=[INSTR_SHORT, INSTR_LONG],
     ),
+    "cam1_relative": dict(
+        COMMON,
+        desc=(
+            "use_relative_actions with relative_exclude_joints ['gripper'] and action_feature_names naming a "
+            "'Gripper_Pos' column: both pipelines carry the relative / absolute steps, and the postprocessor adds the "
+            "raw state to the unnormalised actions except column 3 (matched case-insensitively as part of the "
+            "name); 1 camera (96x128 PNG), state 6 / action 5, MEAN_STD stats"
+        ),
+        seed=7000,
+        cameras=CAM1,
+        state_dim=6,
+        action_dim=5,
+        stats=True,
+        use_relative_actions=True,
+        relative_exclude_joints=["gripper"],
+        action_feature_names=["shoulder_pan", "shoulder_lift", "elbow", "Gripper_Pos", "wrist_roll"],
+        instructions=[INSTR_SHORT, INSTR_LONG],
+    ),
 }
 
 PI05_CASES = {
@@ -682,6 +701,23 @@ PI05_CASES = {
         action_dim=3,
         stats=True,
         instructions=[INSTR_SHORT, INSTR_LONG],
+    ),
+    "cam1_relative": dict(
+        COMMON,
+        desc=(
+            "use_relative_actions with relative_exclude_joints ['gripper', 'ROLL'] over action_feature_names: the "
+            "postprocessor adds the raw state to the unnormalised actions except columns 2 ('wrist_roll') and 4 "
+            "('gripper'); 1 camera (96x128 PNG), state 8 / action 6, QUANTILES stats"
+        ),
+        seed=7100,
+        cameras=CAM1,
+        state_dim=8,
+        action_dim=6,
+        stats=True,
+        use_relative_actions=True,
+        relative_exclude_joints=["gripper", "ROLL"],
+        action_feature_names=["j0", "j1", "wrist_roll", "j3", "gripper", "j5"],
+        instructions=[INSTR_SHORT, INSTR_UNDERSCORE],
     ),
 }
 

@@ -192,6 +192,127 @@ LegacyStats convert_legacy_stats(const Json& config, const TensorStore& weights,
   return out;
 }
 
+namespace {
+
+// A pipeline's step by registry name: its position among the steps (-1: absent) and its config.
+struct PipelineStep {
+  int index = -1;
+  Json config = Json::object();
+};
+
+PipelineStep find_step(const Json& pipeline, const std::string& registry_name) {
+  PipelineStep out;
+  const Json steps = pipeline.value("steps", Json::array());
+  for (std::size_t i = 0; i < steps.size(); ++i)
+    if (steps[i].value("registry_name", "") == registry_name) {
+      out.index = int(i);
+      out.config = steps[i].value("config", Json::object());
+    }
+  return out;
+}
+
+// Python's str(x).lower() for the names lerobot compares (ASCII letters only: no checkpoint seen names joints
+// outside ASCII).
+std::string lowered_name(const Json& v) {
+  std::string s = v.is_string() ? v.get<std::string>() : v.dump();
+  for (char& c : s)
+    if (c >= 'A' && c <= 'Z') c = char(c - 'A' + 'a');
+  return s;
+}
+
+// The width of the `group` feature `key` in config.json (0 when absent).
+int64_t feature_width(const Json& config, const char* group, const std::string& key) {
+  const Json features = config.value(group, Json::object());
+  const auto it = features.find(key);
+  if (it == features.end() || !it->contains("shape") || (*it)["shape"].empty()) return 0;
+  return (*it)["shape"][0].get<int64_t>();
+}
+
+}  // namespace
+
+std::vector<RelativeAction> read_relative_actions(const std::string& dir, const Json& config,
+                                                  std::vector<std::string>& warnings) {
+  const std::string post_path = (fs::path(dir) / kPostprocessorFile).string();
+  const std::string pre_path = (fs::path(dir) / kPreprocessorFile).string();
+  const Json post = fs::exists(post_path) ? read_json_file(post_path) : Json::object();
+  const Json pre = fs::exists(pre_path) ? read_json_file(pre_path) : Json::object();
+  const PipelineStep absolute = find_step(post, "absolute_actions_processor");
+  const PipelineStep relative = find_step(pre, "relative_actions_processor");
+  const bool converts = absolute.index >= 0 && json_get_or<bool>(absolute.config, "enabled", false, post_path);
+  if (!converts) {
+    if (relative.index >= 0 && json_get_or<bool>(relative.config, "enabled", false, pre_path))
+      warnings.push_back("the checkpoint was trained on actions relative to the state (relative_actions_processor), but "
+                         "its postprocessor does not make them absolute: actions are answered as the model predicts "
+                         "them, as lerobot does");
+    return {};
+  }
+  if (relative.index < 0)
+    throw Error(ErrorCode::format, post_path + ": absolute_actions_processor is enabled but " + kPreprocessorFile +
+                                       " has no relative_actions_processor to keep the state (lerobot fails at inference)");
+  const PipelineStep normalizer = find_step(pre, "normalizer_processor");
+  if (normalizer.index >= 0 && normalizer.index < relative.index)
+    throw Error(ErrorCode::unsupported, pre_path + ": relative_actions_processor runs after normalizer_processor, so "
+                                        "the state it keeps is normalised; only lerobot's order (raw state) is supported");
+
+  // The step keeps observation.state and adds its first action_dim values.
+  const int64_t action_dim = [&] {
+    const Json outputs = config.value("output_features", Json::object());
+    for (auto it = outputs.begin(); it != outputs.end(); ++it)
+      if (it->value("type", "") == "ACTION") return feature_width(config, "output_features", it.key());
+    return int64_t(0);
+  }();
+  const int64_t state_dim = feature_width(config, "input_features", "observation.state");
+  const std::string where = fs::path(dir).string() + "/config.json";
+  if (state_dim == 0)
+    throw Error(ErrorCode::unsupported, post_path + ": relative actions are made absolute against observation.state, "
+                                        "which " + where + " does not list");
+  if (state_dim < action_dim)
+    throw Error(ErrorCode::unsupported, post_path + ": relative actions add the state to the action column by column, "
+                                        "but the state has " + std::to_string(state_dim) + " values and the action " +
+                                        std::to_string(action_dim));
+
+  // Which columns convert: all, unless both exclude_joints and action_names are given (RelativeActionsProcessorStep's
+  // mask: a name is excluded when a token equals it or is part of it; columns past the names convert).
+  std::vector<bool> converted(std::size_t(action_dim), true);
+  const Json exclude = relative.config.value("exclude_joints", Json::array());
+  const Json names = relative.config.value("action_names", Json());
+  std::vector<std::string> tokens;
+  if (exclude.is_array())
+    for (const Json& t : exclude)
+      if (!t.is_null() && !(t.is_string() && t.get<std::string>().empty())) tokens.push_back(lowered_name(t));
+  if (!tokens.empty() && names.is_array())
+    for (std::size_t j = 0; j < names.size() && j < converted.size(); ++j) {
+      const std::string name = lowered_name(names[j]);
+      for (const std::string& t : tokens)
+        if (name.find(t) != std::string::npos) converted[j] = false;
+    }
+
+  std::vector<RelativeAction> out;
+  for (int64_t j = 0; j < action_dim;) {
+    if (!converted[std::size_t(j)]) {
+      ++j;
+      continue;
+    }
+    int64_t end = j;
+    while (end < action_dim && converted[std::size_t(end)]) ++end;
+    RelativeAction g;
+    g.kind = RelativeAction::Kind::joint;
+    g.action_offset = g.state_offset = j;
+    g.dim = end - j;
+    if (names.is_array() && std::size_t(end) <= names.size()) {
+      for (int64_t c = j; c < end; ++c) {
+        const Json& name = names[std::size_t(c)];
+        g.name += (c > j ? ", " : "") + (name.is_string() ? name.get<std::string>() : name.dump());
+      }
+    } else {
+      g.name = "columns " + std::to_string(j) + "-" + std::to_string(end - 1);
+    }
+    out.push_back(std::move(g));
+    j = end;
+  }
+  return out;
+}
+
 Normalization load_normalization(const std::string& dir, const Json& config, TensorStore& weights) {
   Normalization n;
   const bool pipelines =
@@ -221,6 +342,7 @@ Normalization load_normalization(const std::string& dir, const Json& config, Ten
   std::vector<std::string> post_warnings;
   n.input = read_pipeline_normalization(dir, kPreprocessorFile, "normalizer_processor", config, n.warnings);
   n.output = read_pipeline_normalization(dir, kPostprocessorFile, "unnormalizer_processor", config, post_warnings);
+  n.output.relative = read_relative_actions(dir, config, n.warnings);
   // The pre- and post-processor usually carry the same stats; report each missing feature once.
   for (const auto& w : post_warnings)
     if (std::find(n.warnings.begin(), n.warnings.end(), w) == n.warnings.end()) n.warnings.push_back(w);

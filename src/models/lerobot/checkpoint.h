@@ -46,6 +46,15 @@ struct LegacyStats {
 bool has_legacy_stats(const TensorStore& weights);
 LegacyStats convert_legacy_stats(const Json& config, const TensorStore& weights, const std::string& where);
 
+// lerobot's relative actions (`use_relative_actions`, pi0 / pi0.5 since lerobot 0.6), as the processor pipelines carry
+// them: the postprocessor's absolute_actions_processor adds the request's raw state to every unnormalised action
+// column, column j to column j, except the columns whose names the preprocessor's relative_actions_processor excludes
+// (`exclude_joints`, matched case-insensitively as a whole name or a part of one against `action_names`). Returned as
+// runs of converted columns; empty when the postprocessor does not convert. Throws where lerobot would fail at every
+// inference (no paired relative step, a state narrower than the action, ...) or would add a normalised state.
+std::vector<RelativeAction> read_relative_actions(const std::string& dir, const Json& config,
+                                                  std::vector<std::string>& warnings);
+
 // A lerobot checkpoint's normaliser: its processor pipelines when it has them; else, for the pre-0.4 layout, the
 // statistics inside the weights (converted as above, the statistics tensors hidden from the model and
 // "._orig_mod" removed from names, with a warning saying so); else the config's mapping without statistics.
