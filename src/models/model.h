@@ -87,9 +87,13 @@ struct ModelSpec {
   // How a request's RTC leftover steers the sampler; rtc_ramp_rate: the inpainting ramp (GR00T's config).
   RtcMethod rtc = RtcMethod::guidance;
   float rtc_ramp_rate = 0;
-  // Some action groups are predicted relative to the state (GR00T's use_relative_action): a previous chunk's leftover
-  // is tied to an older state, so real-time chunking is refused, as lerobot turns it off.
+  // Some action groups are predicted relative to the state (GR00T's use_relative_action, lerobot's
+  // use_relative_actions). A previous chunk's leftover was made absolute against an older state: where
+  // `relative_rtc_reanchored`, it is made relative to the request's state again before it steers the sampler (lerobot's
+  // rollout does so for pi0 / pi0.5); else real-time chunking is refused, as lerobot turns it off (GR00T).
   bool relative_actions = false;
+  bool relative_rtc_reanchored = false;
+  bool rtc_refused_for_relative() const { return relative_actions && !relative_rtc_reanchored; }
 };
 
 struct LoadOptions {

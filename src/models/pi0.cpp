@@ -309,9 +309,10 @@ PiZero::PiZero(const fs::path& dir, const Json& config, TensorStore store, const
     throw Error(ErrorCode::format, where + ": image_resolution must be a square [size, size] (PaliGemma's)");
   spec_.image_height = spec_.image_width = resolution[0];
   // use_relative_actions: the processor pipelines decide, as lerobot loads them; the policy's post-processing adds the
-  // state back (lerobot::read_relative_actions), and a previous chunk's leftover does not carry over (no RTC).
+  // state back (lerobot::read_relative_actions), and an RTC leftover is made relative to the request's state again.
   std::vector<std::string> relative_warnings;  // reported with the normaliser's
   spec_.relative_actions = !lerobot::read_relative_actions(dir.string(), config, relative_warnings).empty();
+  spec_.relative_rtc_reanchored = spec_.relative_actions;
 
   // Features: cameras in input_features order (as upstream iterates image_features), the config's empty cameras
   // after them (validate_features adds them, and a saved config may already list them).

@@ -124,6 +124,18 @@ void Normalizer::to_absolute(float* actions, int64_t rows, int64_t dim, const st
   }
 }
 
+void Normalizer::to_relative(float* actions, int64_t rows, int64_t dim, const std::vector<float>& raw_state) const {
+  for (const models::RelativeAction& g : relative_) {
+    if (g.kind != models::RelativeAction::Kind::joint)
+      throw Error(ErrorCode::internal, "relative action group '" + g.name + "' is a pose: no leftover re-anchoring");
+    if (g.action_offset + g.dim > dim || g.state_offset + g.dim > int64_t(raw_state.size()))
+      throw Error(ErrorCode::internal, "relative action group '" + g.name + "' lies outside the action or state");
+    const float* ref = raw_state.data() + g.state_offset;
+    for (int64_t r = 0; r < rows; ++r)
+      for (int64_t c = 0; c < g.dim; ++c) actions[r * dim + g.action_offset + c] -= ref[c];
+  }
+}
+
 std::vector<std::string> Normalizer::describe() const {
   std::vector<std::string> out;
   for (const auto& [key, f] : features_)

@@ -30,6 +30,9 @@ class Normalizer {
   // Relative action groups made absolute against the request's raw (robot-unit) state: `actions` holds `rows` rows of
   // `dim` values, after unnormalize. No-op without relative groups.
   void to_absolute(float* actions, int64_t rows, int64_t dim, const std::vector<float>& raw_state) const;
+  // The inverse for joint groups: robot-unit actions made relative to `raw_state` (an RTC leftover re-anchored on a new
+  // state). An EEF group has no such inverse here: throws.
+  void to_relative(float* actions, int64_t rows, int64_t dim, const std::vector<float>& raw_state) const;
   bool has_relative() const { return !relative_.empty(); }
   const std::map<std::string, FeatureNorm>& features() const { return features_; }
   // One line per feature: "observation.state: MEAN_STD (stats present)".

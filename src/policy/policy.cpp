@@ -22,7 +22,7 @@ models::DenoiseControl denoise_control(const Observation& o, const models::Model
     fail("adaptive_threshold must be a finite number >= 0, got " + std::to_string(o.adaptive_threshold));
   c.adaptive_threshold = o.adaptive_threshold;
   if (!o.rtc) return c;
-  if (s.relative_actions)
+  if (s.rtc_refused_for_relative())
     fail("rtc: this policy predicts actions relative to the state, so a previous chunk's leftover does not "
          "carry over; real-time chunking is off for it");
   const Observation::Rtc& r = *o.rtc;
@@ -41,6 +41,9 @@ models::DenoiseControl denoise_control(const Observation& o, const models::Model
     fail("rtc.max_guidance_weight must be a finite number > 0, got " + std::to_string(r.max_guidance_weight));
 
   std::vector<float> prev = r.prev_actions;
+  // Relative actions: the leftover, absolute against the state it was predicted from, is made relative to this
+  // request's state first (lerobot's reanchor_relative_rtc_prefix; the robot has moved since).
+  if (s.relative_actions) post.to_relative(prev.data(), n, A, o.state);
   post.invert_unnormalize(s.action_key, prev.data(), values);
   if (s.rtc == models::RtcMethod::inpainting) {
     models::inpainting_rtc(prev, A, s.max_action_dim, s.noise_rows(), r.execution_horizon, r.inference_delay,

@@ -178,7 +178,7 @@ ActPipeline::Act ActPipeline::parse(const ActInput& input, const RequestContext&
   if (wedges.recorder()) trace.inputs = trace_inputs(obs, w.record_images_full);
   if (a.parsed.rtc && !w.sampler.rtc)
     throw HttpError(400, "invalid_field", "rtc: this server runs without --rtc (real-time chunking is off)");
-  if (a.parsed.rtc && engine.spec.relative_actions)
+  if (a.parsed.rtc && engine.spec.rtc_refused_for_relative())
     throw HttpError(400, "invalid_field",
                     "rtc: this policy predicts actions relative to the state, so a previous chunk's leftover does "
                     "not carry over; real-time chunking is off for it");

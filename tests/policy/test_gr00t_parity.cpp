@@ -259,6 +259,7 @@ TEST(Gr00tRelative, MatchesLerobotsDecode) {
   auto policy = policy::Policy::load((dir / "checkpoint").string());
   const auto& spec = policy->spec();
   EXPECT_TRUE(spec.relative_actions);
+  EXPECT_TRUE(spec.rtc_refused_for_relative());  // lerobot turns RTC off for GR00T's relative groups
   policy::Observation o;
   o.state = oracle.get("input.state").to_f32();
   o.instruction = oracle.metadata().at("instruction");
@@ -270,6 +271,17 @@ TEST(Gr00tRelative, MatchesLerobotsDecode) {
   policy->set_debug_hook([&](const std::string& n, const Tensor& t) {
     if (n == "out.actions_normalized") normalized = t.to_f32();
   });
+  {
+    policy::Observation with_rtc = o;
+    with_rtc.rtc = policy::Observation::Rtc{};
+    with_rtc.rtc->prev_actions.assign(std::size_t(spec.action_dim), 0.f);
+    try {
+      policy->predict({with_rtc});
+      ADD_FAILURE() << "an RTC leftover was accepted for GR00T's relative groups";
+    } catch (const Error& e) {
+      EXPECT_NE(std::string(e.what()).find("relative to the state"), std::string::npos) << e.what();
+    }
+  }
   const std::vector<float> got = policy->predict({o}).items.at(0).actions;
   auto diff = [](const std::vector<float>& a, const std::vector<float>& b) {
     EXPECT_EQ(a.size(), b.size());

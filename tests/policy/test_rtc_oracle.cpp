@@ -1,6 +1,7 @@
 // Real-time chunking against upstream: lerobot's SmolVLA, pi0 and pi0.5 with their RTCProcessor
 // (tools/oracle/rtc_oracle.py, pi_rtc_oracle.py) on one fixture checkpoint each, for several
-// delay/horizon/schedule/weight settings. Reports max |diff| per setting.
+// delay/horizon/schedule/weight settings, and pi0 / pi0.5 with relative actions re-anchored as lerobot's rollout does.
+// Reports max |diff| per setting.
 #include <gtest/gtest.h>
 
 #include <cmath>
@@ -22,7 +23,9 @@ struct RtcFixture {
   const char* source;
 };
 const RtcFixture kFixtures[] = {
-    {"smolvla_rtc", "smolvla/cam1_stats"}, {"pi0_rtc", "pi0/cam2_bf16"}, {"pi05_rtc", "pi05/cam2_bf16"}};
+    {"smolvla_rtc", "smolvla/cam1_stats"},          {"pi0_rtc", "pi0/cam2_bf16"},
+    {"pi05_rtc", "pi05/cam2_bf16"},                 {"pi0_rtc_relative", "pi0/cam1_relative"},
+    {"pi05_rtc_relative", "pi05/cam1_relative"}};
 
 // pi0's PaliGemma tokenizer: the oracle's stand-in, in a hub cache under its real repo id.
 const bool kHubCacheSet = [] {
@@ -55,7 +58,8 @@ TEST_P(RtcOracle, MatchesLerobotsRtcProcessor) {
   const Json cameras = Json::parse(source.metadata().at("cameras"));
   const Json files = Json::parse(source.metadata().at("input_files"));
   const Json instructions = Json::parse(source.metadata().at("instructions"));
-  const Tensor state = source.get("input.state");
+  // A relative-actions fixture moves the robot between the two chunks: its own input.state is the new one.
+  const Tensor state = oracle.contains("input.state") ? oracle.get("input.state") : source.get("input.state");
   const std::vector<float> states = state.to_f32(), noise = oracle.get("input.noise").to_f32();
   const Tensor prev = oracle.get("input.prev_actions");
   const std::vector<float> prev_actions = prev.to_f32();

@@ -7,7 +7,13 @@ init_rtc_processor, other noise) towards that chunk's leftover through predict_a
 inference_delay / prev_chunk_left_over / execution_horizon, for several (delay, horizon, schedule, max guidance
 weight) settings. Writes tests/fixtures/<family>_rtc/oracle.safetensors.
 
-Usage: tools/oracle/run.sh pi_rtc_oracle.py --family pi0|pi05 [--out DIR]
+With --relative it reads the use_relative_actions case (cam1_relative) and follows lerobot's rollout
+(lerobot/rollout/inference/rtc.py): the previous chunk is made absolute against the state of its own observation
+and its leftover kept in robot units; the robot then moves (a new state, input.state), and the leftover is made
+relative to the new state and normalised by reanchor_relative_rtc_prefix before it steers the sampler. Writes
+tests/fixtures/<family>_rtc_relative/oracle.safetensors.
+
+Usage: tools/oracle/run.sh pi_rtc_oracle.py --family pi0|pi05 [--relative] [--out DIR]
 """
 
 from __future__ import annotations
@@ -22,6 +28,8 @@ import safetensors
 import torch
 from lerobot.configs import RTCAttentionSchedule
 from lerobot.policies.rtc.configuration_rtc import RTCConfig
+from lerobot.policies.rtc.relative import reanchor_relative_rtc_prefix
+from lerobot.processor import NormalizerProcessorStep, RelativeActionsProcessorStep
 
 from pi_oracle import CASES, FAMILIES, REPO_ROOT, load_checkpoint, make_batch
 from smolvla_oracle import decode_image, versions, write_safetensors
@@ -29,6 +37,8 @@ from smolvla_oracle import decode_image, versions, write_safetensors
 # Cases whose action statistics have no degenerate dimension: a client sends the leftover in robot units, and a
 # dimension whose std is 0 (or q01 == q99) cannot be mapped back to the normalised value upstream guides towards.
 SOURCE = {"pi0": "cam2_bf16", "pi05": "cam2_bf16"}
+RELATIVE_SOURCE = {"pi0": "cam1_relative", "pi05": "cam1_relative"}
+MOVED = 1.75  # --relative: how far every joint moved (robot units) between the two chunks' observations
 EXECUTED = 2  # actions of the previous chunk already run; the rest is the leftover
 SETTINGS = [  # name, inference_delay, execution_horizon, schedule, max_guidance_weight
     ("linear_d2_h5", 2, 5, RTCAttentionSchedule.LINEAR, 10.0),
@@ -41,12 +51,14 @@ SETTINGS = [  # name, inference_delay, execution_horizon, schedule, max_guidance
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--family", choices=sorted(FAMILIES), required=True)
+    p.add_argument("--relative", action="store_true", help="the use_relative_actions case, re-anchored as lerobot does")
     p.add_argument("--out", default="")
     args = p.parse_args()
     fam = FAMILIES[args.family]
-    out = Path(args.out or REPO_ROOT / "tests" / "fixtures" / f"{fam.name}_rtc")
+    suffix = "_rtc_relative" if args.relative else "_rtc"
+    out = Path(args.out or REPO_ROOT / "tests" / "fixtures" / f"{fam.name}{suffix}")
     out.mkdir(parents=True, exist_ok=True)
-    case = SOURCE[fam.name]
+    case = (RELATIVE_SOURCE if args.relative else SOURCE)[fam.name]
     spec = CASES[fam.name][case]
     source = REPO_ROOT / "tests" / "fixtures" / fam.name / case
     ckpt = source / "checkpoint"
@@ -73,6 +85,18 @@ def main() -> None:
         leftover_norm = prev_norm[:, EXECUTED:, :].contiguous()
         t["input.prev_actions"] = post(leftover_norm.clone()).float()  # robot units, as a client holds them
         t["input.prev_actions_normalized"] = leftover_norm.float()
+        if args.relative:
+            # The next observation: the robot moved. Its preprocessing keeps the new state, and the leftover, absolute
+            # against the old one, is re-anchored on it as lerobot's rollout does.
+            state = (state + np.float32(MOVED)).astype(np.float32)
+            t["input.state"] = torch.from_numpy(state)
+            processed = pre(make_batch(images, state, instructions))
+            relative = next(s for s in pre.steps if isinstance(s, RelativeActionsProcessorStep))
+            normalizer = next(s for s in pre.steps if isinstance(s, NormalizerProcessorStep))
+            leftover_norm = reanchor_relative_rtc_prefix(
+                t["input.prev_actions"].clone(), torch.from_numpy(state), relative, normalizer, "cpu"
+            ).contiguous()
+            t["input.prev_actions_normalized"] = leftover_norm.float()
         plain = policy.predict_action_chunk(processed, noise=noise.clone())
         t["out.no_rtc.actions_normalized"] = plain.float()
         for name, delay, horizon, schedule, max_w in SETTINGS:
@@ -103,7 +127,7 @@ def main() -> None:
             ]
         ),
         "replaced": meta["replaced"],
-        "generator": f"tools/oracle/pi_rtc_oracle.py --family {fam.name}",
+        "generator": f"tools/oracle/pi_rtc_oracle.py --family {fam.name}" + (" --relative" if args.relative else ""),
     }
     write_safetensors(out / "oracle.safetensors", t, info)
     print(f"wrote {out / 'oracle.safetensors'}")

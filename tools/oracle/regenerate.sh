@@ -25,9 +25,11 @@ echo "== pi0 / pi0.5 fixtures (the stand-in PaliGemma tokenizer's hub cache firs
 "$here/run.sh" "$here/pi_oracle.py" tokenizer
 "$here/run.sh" "$here/pi_oracle.py" fixtures --family pi0
 "$here/run.sh" "$here/pi_oracle.py" fixtures --family pi05
-echo "== pi0 / pi0.5 real-time chunking fixtures (read the pi0 and pi05 cam2_bf16 cases)"
+echo "== pi0 / pi0.5 real-time chunking fixtures (read the pi0 and pi05 cam2_bf16 and cam1_relative cases)"
 "$here/run.sh" "$here/pi_rtc_oracle.py" --family pi0
 "$here/run.sh" "$here/pi_rtc_oracle.py" --family pi05
+"$here/run.sh" "$here/pi_rtc_oracle.py" --family pi0 --relative
+"$here/run.sh" "$here/pi_rtc_oracle.py" --family pi05 --relative
 echo "== FluxVLA pi0.5 run directories (read the pi05 cam1_quantiles_bins and variant_dims cases)"
 "$here/run.sh" "$here/fluxvla_oracle.py" fixtures
 "$here/run.sh" "$here/fluxvla_oracle.py" tokenizer
