@@ -313,7 +313,7 @@ TEST(ModelHosts, EachEmbodimentRecordsItsOwnTraceChain) {
   EXPECT_EQ(serve::testing::read_trace_lines(dir / "humanoid").size(), 2u);
 }
 
-TEST(ActPipeline, RtcIsRefusedForActionsRelativeToTheState) {
+TEST(ActPipeline, RtcIsRefusedForActionsRelativeToTheStateUnlessReanchored) {
   ServerOptions o;
   o.wedges.sampler.rtc = true;
   Metrics metrics("test", "");
@@ -332,4 +332,17 @@ TEST(ActPipeline, RtcIsRefusedForActionsRelativeToTheState) {
   EXPECT_EQ(code_of(r), "invalid_field");
   EXPECT_NE(r.body["error"]["message"].get<std::string>().find("relative to the state"), std::string::npos);
   hosts.stop();
+
+  // pi0 / pi0.5 (lerobot's use_relative_actions): the policy re-anchors the leftover on the request's state instead.
+  ModelHosts reanchoring({{"", [] {
+                            Engine e = embodiment_engine("arm");
+                            e.spec.relative_actions = e.spec.relative_rtc_reanchored = true;
+                            return e;
+                          }}},
+                         o.batch, o.wedges, metrics);
+  ASSERT_TRUE(reanchoring.load());
+  ActPipeline accepting(o, reanchoring, metrics);
+  const ActResponse ok = run_body(accepting, body.dump());
+  EXPECT_EQ(ok.status, 200) << ok.body.dump();
+  reanchoring.stop();
 }
