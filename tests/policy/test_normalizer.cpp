@@ -191,8 +191,8 @@ TEST(LerobotRelativeActions, ColumnsFollowTheExcludedNames) {
 
   RelativeCase named;
   named.action_dim = 4;
-  named.relative["exclude_joints"] = {"GRIPPER", "", nullptr};
-  named.relative["action_names"] = {"shoulder", "left_Gripper", "elbow"};  // the 4th column has no name: converts
+  named.relative["exclude_joints"] = {"GRIPPER", "", nullptr, 0};  // falsy tokens are skipped, as Python's `if name`
+  named.relative["action_names"] = {"shoulder", "left_Gripper", "elbow_0"};  // the 4th column has no name: converts
   groups = relative_of("named", named);
   ASSERT_EQ(groups.size(), 2u);
   EXPECT_EQ(groups[0].action_offset, 0);
@@ -203,7 +203,7 @@ TEST(LerobotRelativeActions, ColumnsFollowTheExcludedNames) {
   EXPECT_EQ(groups[1].dim, 2);
 
   RelativeCase none_named = named;  // only empty tokens: every column
-  none_named.relative["exclude_joints"] = {""};
+  none_named.relative["exclude_joints"] = {"", false};
   groups = relative_of("none_named", none_named);
   ASSERT_EQ(groups.size(), 1u);
   EXPECT_EQ(groups[0].dim, 4);

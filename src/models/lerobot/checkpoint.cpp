@@ -277,9 +277,17 @@ std::vector<RelativeAction> read_relative_actions(const std::string& dir, const 
   const Json exclude = relative.config.value("exclude_joints", Json::array());
   const Json names = relative.config.value("action_names", Json());
   std::vector<std::string> tokens;
+  // Python's `if name`: null, false, 0, "" and empty containers are skipped.
+  auto truthy = [](const Json& v) {
+    if (v.is_null()) return false;
+    if (v.is_boolean()) return v.get<bool>();
+    if (v.is_number()) return v.get<double>() != 0.0;
+    if (v.is_string()) return !v.get<std::string>().empty();
+    return !v.empty();
+  };
   if (exclude.is_array())
     for (const Json& t : exclude)
-      if (!t.is_null() && !(t.is_string() && t.get<std::string>().empty())) tokens.push_back(lowered_name(t));
+      if (truthy(t)) tokens.push_back(lowered_name(t));
   if (!tokens.empty() && names.is_array())
     for (std::size_t j = 0; j < names.size() && j < converted.size(); ++j) {
       const std::string name = lowered_name(names[j]);
