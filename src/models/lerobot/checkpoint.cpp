@@ -220,12 +220,13 @@ std::string lowered_name(const Json& v) {
   return s;
 }
 
-// The width of the `group` feature `key` in config.json (0 when absent).
-int64_t feature_width(const Json& config, const char* group, const std::string& key) {
+// The width of the `group` feature `key` in config.json (0 when absent); `where` names the file in errors.
+int64_t feature_width(const Json& config, const char* group, const std::string& key, const std::string& where) {
   const Json features = config.value(group, Json::object());
   const auto it = features.find(key);
-  if (it == features.end() || !it->contains("shape") || (*it)["shape"].empty()) return 0;
-  return (*it)["shape"][0].get<int64_t>();
+  if (it == features.end()) return 0;
+  const auto shape = json_get<std::vector<int64_t>>(*it, "shape", where + ": " + group + "." + key);
+  return shape.empty() ? 0 : shape[0];
 }
 
 }  // namespace
@@ -255,14 +256,14 @@ std::vector<RelativeAction> read_relative_actions(const std::string& dir, const 
                                         "the state it keeps is normalised; only lerobot's order (raw state) is supported");
 
   // The step keeps observation.state and adds its first action_dim values.
+  const std::string where = (fs::path(dir) / "config.json").string();
   const int64_t action_dim = [&] {
     const Json outputs = config.value("output_features", Json::object());
     for (auto it = outputs.begin(); it != outputs.end(); ++it)
-      if (it->value("type", "") == "ACTION") return feature_width(config, "output_features", it.key());
+      if (it->value("type", "") == "ACTION") return feature_width(config, "output_features", it.key(), where);
     return int64_t(0);
   }();
-  const int64_t state_dim = feature_width(config, "input_features", "observation.state");
-  const std::string where = fs::path(dir).string() + "/config.json";
+  const int64_t state_dim = feature_width(config, "input_features", "observation.state", where);
   if (state_dim == 0)
     throw Error(ErrorCode::unsupported, post_path + ": relative actions are made absolute against observation.state, "
                                         "which " + where + " does not list");
