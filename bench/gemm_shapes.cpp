@@ -192,13 +192,16 @@ int main(int argc, char** argv) try {
   int threads = 2;
   double min_batch_s = 0.05;
   std::string model = "smolvla";
+  std::string only;  // run only the shapes whose "group name" contains this text
   for (int i = 1; i < argc; ++i) {
     if (!std::strcmp(argv[i], "--threads") && i + 1 < argc) threads = std::atoi(argv[++i]);
     else if (!std::strcmp(argv[i], "--min-batch-ms") && i + 1 < argc) min_batch_s = std::atof(argv[++i]) / 1e3;
     else if (!std::strcmp(argv[i], "--cpu-time")) g_cpu_time = true;
     else if (!std::strcmp(argv[i], "--model") && i + 1 < argc) model = argv[++i];
+    else if (!std::strcmp(argv[i], "--only") && i + 1 < argc) only = argv[++i];
     else {
-      std::fprintf(stderr, "usage: gemm_shapes [--threads N] [--min-batch-ms MS] [--cpu-time] [--model smolvla|pi0|pi05|gr00t_n17]\n");
+      std::fprintf(stderr, "usage: gemm_shapes [--threads N] [--min-batch-ms MS] [--cpu-time] "
+                           "[--model smolvla|pi0|pi05|gr00t_n17] [--only TEXT]\n");
       return 2;
     }
   }
@@ -223,6 +226,13 @@ int main(int argc, char** argv) try {
   std::vector<GemmShape> shapes(std::begin(kShapes), std::end(kShapes));
   if (model == "pi0" || model == "pi05") shapes.assign(std::begin(kPi0Shapes), std::end(kPi0Shapes));
   if (model == "gr00t_n17") shapes.assign(std::begin(kGr00tN17Shapes), std::end(kGr00tN17Shapes));
+  std::erase_if(shapes, [&](const GemmShape& s) {
+    return (std::string(s.group) + " " + s.name).find(only) == std::string::npos;
+  });
+  if (shapes.empty()) {
+    std::fprintf(stderr, "gemm_shapes: no %s shape matches --only '%s'\n", model.c_str(), only.c_str());
+    return 2;
+  }
   for (const GemmShape& s : shapes) {
     const int64_t m = s.m, n = s.n, k = s.k;
     std::vector<float> x(std::size_t(m * k)), w(std::size_t(n * k)), ref(std::size_t(m * n)), y(ref.size());
