@@ -70,13 +70,14 @@ void attention(const float* q, int64_t q_stride, const float* k, const float* v,
     const int64_t tasks = (g1 - g0) * groups * blocks;
 #pragma omp parallel if (parallel)
     {
+      // K and V are packed as separate items, so that one K/V head (pi0's) keeps two threads busy.
 #pragma omp for schedule(static)
-      for (int64_t g = g0; g < g1; ++g) {
-        const int64_t b = g / kv_heads, kh = g % kv_heads;
+      for (int64_t item = 2 * g0; item < 2 * g1; ++item) {
+        const int64_t g = item / 2, b = g / kv_heads, kh = g % kv_heads;
         float* kp = packed_kv + (g - g0) * pair_floats;
         const int64_t offset = b * len_k * kv_stride + kh * head_dim;
-        detail::pack_b_panels(len_k, head_dim, k + offset, kv_stride, /*trans_b=*/true, kp);
-        detail::pack_b_panels(head_dim, len_k, v + offset, kv_stride, /*trans_b=*/false, kp + k_floats);
+        if (item % 2 == 0) detail::pack_b_panels(len_k, head_dim, k + offset, kv_stride, /*trans_b=*/true, kp);
+        else detail::pack_b_panels(head_dim, len_k, v + offset, kv_stride, /*trans_b=*/false, kp + k_floats);
       }
 #pragma omp for schedule(dynamic)
       for (int64_t task = 0; task < tasks; ++task) {
