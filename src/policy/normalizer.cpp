@@ -98,16 +98,27 @@ Pose xyz_rot6d_pose(const float* p) {
   return t;
 }
 
+// Group g's slice of the raw state, once the group is known to lie inside both the action row and the state.
+const float* group_state(const models::RelativeAction& g, int64_t dim, const std::vector<float>& raw_state) {
+  if (g.action_offset + g.dim > dim || g.state_offset + g.dim > int64_t(raw_state.size()))
+    throw Error(ErrorCode::internal, "relative action group '" + g.name + "' lies outside the action or state");
+  return raw_state.data() + g.state_offset;
+}
+
+// A joint group's columns of every row moved by sign * state (+1: to absolute, -1: back to relative; exact).
+void shift_joints(const models::RelativeAction& g, float* actions, int64_t rows, int64_t dim, const float* ref,
+                  float sign) {
+  for (int64_t r = 0; r < rows; ++r)
+    for (int64_t c = 0; c < g.dim; ++c) actions[r * dim + g.action_offset + c] += sign * ref[c];
+}
+
 }  // namespace
 
 void Normalizer::to_absolute(float* actions, int64_t rows, int64_t dim, const std::vector<float>& raw_state) const {
   for (const models::RelativeAction& g : relative_) {
-    if (g.action_offset + g.dim > dim || g.state_offset + g.dim > int64_t(raw_state.size()))
-      throw Error(ErrorCode::internal, "relative action group '" + g.name + "' lies outside the action or state");
-    const float* ref = raw_state.data() + g.state_offset;
+    const float* ref = group_state(g, dim, raw_state);
     if (g.kind == models::RelativeAction::Kind::joint) {
-      for (int64_t r = 0; r < rows; ++r)
-        for (int64_t c = 0; c < g.dim; ++c) actions[r * dim + g.action_offset + c] += ref[c];
+      shift_joints(g, actions, rows, dim, ref, 1.0f);
       continue;
     }
     const Pose t_ref = xyz_rot6d_pose(ref);
@@ -128,11 +139,7 @@ void Normalizer::to_relative(float* actions, int64_t rows, int64_t dim, const st
   for (const models::RelativeAction& g : relative_) {
     if (g.kind != models::RelativeAction::Kind::joint)
       throw Error(ErrorCode::internal, "relative action group '" + g.name + "' is a pose: no leftover re-anchoring");
-    if (g.action_offset + g.dim > dim || g.state_offset + g.dim > int64_t(raw_state.size()))
-      throw Error(ErrorCode::internal, "relative action group '" + g.name + "' lies outside the action or state");
-    const float* ref = raw_state.data() + g.state_offset;
-    for (int64_t r = 0; r < rows; ++r)
-      for (int64_t c = 0; c < g.dim; ++c) actions[r * dim + g.action_offset + c] -= ref[c];
+    shift_joints(g, actions, rows, dim, group_state(g, dim, raw_state), -1.0f);
   }
 }
 
