@@ -190,8 +190,17 @@ class Backend {
   FlopCounter flops_;
 };
 
-// The backends compiled into this binary, by name ("cpu"), and one of them made on request.
+// The backends compiled into this binary, by name ("cpu", and "cuda" when nvcc built it), and one of them made on
+// request. make_backend("cuda") on a machine with no usable device throws Error(unavailable) whose message is one line
+// saying why; "auto" makes the first usable of cuda, cpu.
 std::vector<std::string> compiled_backends();
 std::shared_ptr<Backend> make_backend(const std::string& name = "cpu");
+
+// Whether make_backend(name) would succeed here; when not, `why` (if given) gets the one-line reason. Cheap enough to
+// call per command (it opens no model), and never throws.
+bool backend_usable(const std::string& name, std::string* why = nullptr);
+// "auto" resolved to the backend it picks on this machine ("cuda" when compiled and a device is usable, else "cpu");
+// any other name is returned as it is (unknown names fail later, in make_backend).
+std::string resolve_backend(const std::string& name);
 
 }  // namespace tether::backend

@@ -464,7 +464,7 @@ TEST(BackendRegistry, UnknownBackendIsAClearError) {
     make_backend("tpu");
     FAIL() << "no error";
   } catch (const Error& e) {
-    EXPECT_NE(std::string(e.what()).find("compiled: cpu"), std::string::npos) << e.what();
+    EXPECT_NE(std::string(e.what()).find("compiled: "), std::string::npos) << e.what();
   }
 }
 
