@@ -1,6 +1,8 @@
 // The registry of compiled backends: a CUDA backend adds its line here when nvcc builds it.
 #include "backend/backend.h"
 
+#include <cstdlib>
+
 #include "backend/cpu/cpu_backend.h"
 #include "core/error.h"
 #if TETHER_HAVE_CUDA
@@ -75,6 +77,11 @@ std::shared_ptr<Backend> make_backend(const std::string& name) {
   std::string why;
   backend_usable(chosen, &why);
   throw Error(ErrorCode::invalid_argument, why);
+}
+
+std::shared_ptr<Backend> make_default_backend() {
+  const char* chosen = std::getenv("TETHER_BACKEND");
+  return make_backend(chosen && *chosen ? chosen : "cpu");
 }
 
 }  // namespace tether::backend

@@ -196,6 +196,10 @@ class Backend {
 std::vector<std::string> compiled_backends();
 std::shared_ptr<Backend> make_backend(const std::string& name = "cpu");
 
+// The backend a model gets when its load options name none: TETHER_BACKEND (cpu, cuda or auto) when set, else the
+// CPU. It lets a whole test suite run on another backend unchanged (scripts/check_cuda.sh runs the parity suite so).
+std::shared_ptr<Backend> make_default_backend();
+
 // Whether make_backend(name) would succeed here; when not, `why` (if given) gets the one-line reason. Cheap enough to
 // call per command (it opens no model), and never throws.
 bool backend_usable(const std::string& name, std::string* why = nullptr);

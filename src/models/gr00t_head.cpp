@@ -382,7 +382,7 @@ void grow(backend::Backend& be, backend::Array<float>& a, int64_t n) {
 }
 
 Gr00tModel::Gr00tModel(const LoadOptions& options)
-    : be_(options.backend ? options.backend : backend::make_backend("cpu")) {}
+    : be_(options.backend ? options.backend : backend::make_default_backend()) {}
 
 void Gr00tModel::head_state(const ModelInput& in, float* out) const {
   std::copy(in.state.begin(), in.state.end(), out);

@@ -100,7 +100,7 @@ struct LoadOptions {
   // fp32 is the reference mode; bf16 runs the linear layers with bf16 weights and inputs (float32
   // accumulation, attention and norms in float32), measured against fp32, never assumed equal.
   cpu::Precision precision = cpu::Precision::fp32;
-  // Where the model runs; null: the CPU backend.
+  // Where the model runs; null: backend::make_default_backend() (TETHER_BACKEND, else the CPU).
   std::shared_ptr<backend::Backend> backend;
   // For checkpoints trained on several embodiments (GR00T): the tag served, as the checkpoint names it. Empty: the
   // checkpoint's only one (an error lists the tags when there are several).

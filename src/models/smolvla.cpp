@@ -122,7 +122,7 @@ class SmolVLA final : public Model {
 SmolVLA::SmolVLA(const fs::path& dir, const Json& config, TensorStore weights, const LoadOptions& options) {
   const cpu::Precision precision = options.precision;
   spec_.precision = precision;
-  be_ = options.backend ? options.backend : backend::make_backend("cpu");
+  be_ = options.backend ? options.backend : backend::make_default_backend();
   backend::Backend& be = *be_;
   const std::string where = (dir / "config.json").string();
   const FamilyDescriptor& family = smolvla_family();
