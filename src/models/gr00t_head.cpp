@@ -577,6 +577,7 @@ ModelOutput Gr00tModel::predict(const std::vector<ModelInput>& batch) {
     if (dumping()) dump_array<float>(be, "mid.vl_embeds.vlln", DType::f32, {1, p.len, D}, p.vl.at());
     vl_attention_.forward(be, p.vl.at(), 1, p.len);
     if (dumping()) dump_array<float>(be, "mid.vl_embeds", DType::f32, {1, p.len, D}, p.vl.at());
+    be.synchronize();  // a GPU runs behind the host: time the work, not its queueing
     out.timings.set("backbone", out.timings.get("backbone") + elapsed_ms(t0));
     Lmax = std::max(Lmax, p.len);
     prefixes.push_back(std::move(p));
@@ -626,6 +627,7 @@ ModelOutput Gr00tModel::predict(const std::vector<ModelInput>& batch) {
   be.activate(state_mid_.at(), B * head_.hidden, Activation::relu);
   be.linear(*em.state2, state_mid_.at(), B, state_tok_.at());
   if (dumping()) dump_array<float>(be, "mid.state_features", DType::f32, {B, 1, Din}, state_tok_.at());
+  be.synchronize();  // a GPU runs behind the host: time the work, not its queueing
   out.timings.set("backbone", out.timings.get("backbone") + elapsed_ms(t0));
 
   // Euler from noise at t = 0 to actions at t = 1.

@@ -293,6 +293,7 @@ Gr00tModel::Backbone Gr00tN16::encode_backbone(const ModelInput& in, int64_t ite
     if (dumping()) dump_array<float>(be, "mid.projector." + spec().cameras[k], DType::f32, {m, D}, image_rows_.at(row * D));
     row += m;
   }
+  be.synchronize();  // a GPU runs behind the host: time the work, not its queueing
   out.timings.set("vision", out.timings.get("vision") + elapsed_ms(t0));
 
   // Text: token embeddings with the image rows at the <IMG_CONTEXT> tokens (in order), Qwen3 cut at select_layer,
@@ -313,6 +314,7 @@ Gr00tModel::Backbone Gr00tN16::encode_backbone(const ModelInput& in, int64_t ite
   text_.forward(be, x_.at(), 1, L, positions_.at(), causal_.at(), cache);
   be.rms_norm(x_.at(), L, D, final_norm_.at(), text_cfg_.rms_norm_eps, features_.at());
   if (dumping()) dump_array<float>(be, "mid.backbone_features", DType::f32, {1, L, D}, features_.at());
+  be.synchronize();  // a GPU runs behind the host: time the work, not its queueing
   out.timings.set("backbone", out.timings.get("backbone") + elapsed_ms(t0));
   b.features = features_.at();
   return b;

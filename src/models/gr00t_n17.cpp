@@ -248,6 +248,7 @@ Gr00tModel::Backbone Gr00tN17::encode_backbone(const ModelInput& in, int64_t ite
     for (std::size_t k = 0; k < ds.size(); ++k)
       dump_array<float>(be, "mid.vision.deepstack." + std::to_string(k), DType::f32, {M, D}, ds[k]);
   }
+  be.synchronize();  // a GPU runs behind the host: time the work, not its queueing
   out.timings.set("vision", out.timings.get("vision") + elapsed_ms(t0));
 
   // Text: token embeddings with the image rows in place of the image pads, the decoder with the DeepStack features
@@ -279,6 +280,7 @@ Gr00tModel::Backbone Gr00tN17::encode_backbone(const ModelInput& in, int64_t ite
   };
   text_.forward(be, x_.at(), 1, L, RotaryTable{rope_cos_.at(), rope_sin_.at()}, causal_.at(), cache, after_layer);
   if (dumping()) dump_array<float>(be, "mid.backbone_features", DType::f32, {1, L, D}, x_.at());
+  be.synchronize();  // a GPU runs behind the host: time the work, not its queueing
   out.timings.set("backbone", out.timings.get("backbone") + elapsed_ms(t0));
   p.features = x_.at();
   return p;

@@ -49,6 +49,7 @@ void Model::sample_actions(backend::Backend& be, const std::vector<ModelInput>& 
   controls.reserve(batch.size());
   for (const auto& item : batch) controls.push_back(item.denoise);
   out.steps_used = euler_sample(be, x, v, {B, C, A, s.action_dim}, schedule, controls, velocity, on_step0_velocity);
+  be.synchronize();  // a GPU runs behind the host: time the work, not its queueing
   out.timings.set("denoise", std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - t0).count());
 
   // `noise` is reused for the result: the padded [B*C, A] rows, then cut to the first chunk_size rows of each item

@@ -610,6 +610,7 @@ void PiZero::build_prefix(const std::vector<ModelInput>& batch, ModelOutput& out
     be.linear(*projector_, vision_out_.at(), n * T, img_tokens_.at(i * T * D));
   }
   images_run_ = images;
+  be_->synchronize();  // a GPU runs behind the host: time the work, not its queueing
   out.timings.set("vision", ms_since(t1));
   if (dumping()) {
     for (int64_t c = 0; c < ncam; ++c) {
@@ -804,6 +805,7 @@ ModelOutput PiZero::predict(const std::vector<ModelInput>& batch) {
 
   const auto t2 = std::chrono::steady_clock::now();
   run_prefix();
+  be_->synchronize();  // a GPU runs behind the host: time the work, not its queueing
   out.timings.set("prefix", ms_since(t2));
 
   // Euler from the noise (t=1) to the actions (t=0), per-item controls (blocks/sampler.h).

@@ -362,6 +362,7 @@ void SmolVLA::build_prefix(const std::vector<ModelInput>& batch, ModelOutput& ou
     images_run_ += n;
     i += n;
   }
+  be_->synchronize();  // a GPU runs behind the host: time the work, not its queueing
   out.timings.set("vision", ms_since(t1));
   if (dumping()) {
     for (int64_t c = 0; c < ncam; ++c) {
@@ -468,6 +469,7 @@ ModelOutput SmolVLA::predict(const std::vector<ModelInput>& batch) {
 
   const auto t2 = std::chrono::steady_clock::now();
   run_prefix();
+  be_->synchronize();  // a GPU runs behind the host: time the work, not its queueing
   out.timings.set("prefix", ms_since(t2));
 
   // Euler from the noise (t=1) to the actions (t=0), per-item controls (blocks/sampler.h).

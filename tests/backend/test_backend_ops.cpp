@@ -7,6 +7,8 @@
 #include <cmath>
 #include <cstdio>
 #include <cstring>
+#include <functional>
+#include <limits>
 #include <random>
 #include <string>
 #include <vector>
@@ -463,6 +465,80 @@ TEST_P(BackendOps, ConstantsReadAsUploaded) {
   const auto w = random_vec(64, 90);
   const Array<float> c = be->constant(w.data(), 64);
   EXPECT_EQ(get(c), w);
+}
+
+// Every operation on outputs poisoned with NaN, run twice: every output element is written (no NaN is left), and the
+// two runs agree bit for bit (no race, no uninitialised read, no order that depends on scheduling). Shapes are the
+// families' own, with the odd sizes that leave partial tiles and blocks.
+TEST_P(BackendOps, EveryOpWritesItsWholeOutputTheSameTwice) {
+  const float kPoison = std::numeric_limits<float>::quiet_NaN();
+  struct Case {
+    std::string name;
+    int64_t out_size;
+    std::function<void(Ptr<float> out)> run;  // re-uploads its inputs, then runs the op into out
+  };
+  const int64_t rows = 7, n = 960, B = 2, Lq = 19, Lk = 37, H = 15, KvH = 5, D = 64;
+  const auto x = random_vec(rows * 2 * n, 100, -3, 3), w = random_vec(n, 101), mod = random_vec(2 * 3 * n, 102);
+  const auto q = random_vec(B * Lq * H * D, 103), kv = random_vec(B * Lk * KvH * D, 104);
+  std::vector<uint8_t> mask(std::size_t(B * Lq * Lk));
+  for (std::size_t i = 0; i < mask.size(); ++i) mask[i] = (i * 7) % 5 != 0;
+  std::vector<int64_t> pos(std::size_t(B * Lq));
+  for (std::size_t i = 0; i < pos.size(); ++i) pos[i] = int64_t(i * 3);
+  const Array<float> xa = put(x), wa = put(w), ma = put(mod), qa = put(q), ka = put(kv), va = put(random_vec(B * Lk * KvH * D, 105));
+  const Array<uint8_t> mask_a = put(mask);
+  const Array<int64_t> pos_a = put(pos);
+  const auto lw = be->pack_linear(random_vec(320 * n, 106).data(), 320, n, random_vec(320, 107).data(), cpu::Precision::fp32);
+  const std::vector<int64_t> ids = {5, 0, 49, 5, 17};
+  const Array<int64_t> ids_a = put(ids);
+  const auto table_values = random_vec(50 * 96, 108);
+  const Tensor table_host{DType::f32, {50, 96}, table_values.data(), nullptr};
+  const auto table = be->table(table_host);
+  const auto pixels = random_vec(2 * 3 * 28 * 28, 109), patch_w = random_vec(24 * 3 * 14 * 14, 110);
+  const Array<float> pixels_a = put(pixels), patch_wa = put(patch_w), patch_ba = put(random_vec(24, 111));
+  auto copy_in = [&](Ptr<float> out, int64_t count) { be->upload(x.data(), count, out); };
+  const std::vector<Case> cases = {
+      {"linear", rows * 320, [&](Ptr<float> o) { be->linear(*lw, xa.at(), rows, o); }},
+      {"layer_norm", rows * n, [&](Ptr<float> o) { be->layer_norm(xa.at(), rows, n, wa.at(), wa.at(), 1e-6f, o); }},
+      {"rms_norm", rows * n, [&](Ptr<float> o) { be->rms_norm(xa.at(), rows, n, wa.at(), 1e-6f, o); }},
+      {"rms_norm_modulated", rows * n,
+       [&](Ptr<float> o) { be->rms_norm_modulated(xa.at(), rows, n, ma.at(), ma.at(n), 3 * n, 4, 1e-6f, o); }},
+      {"modulate", rows * n, [&](Ptr<float> o) { copy_in(o, rows * n), be->modulate(o, rows, n, ma.at(), ma.at(n), 3 * n, 4); }},
+      {"attention", B * Lq * H * D,
+       [&](Ptr<float> o) { be->attention(qa.at(), H * D, ka.at(), va.at(), KvH * D, mask_a.at(), B, Lq, Lk, H, KvH, D, 0.125f, o); }},
+      {"rope", B * Lq * H * D, [&](Ptr<float> o) { be->upload(q.data(), B * Lq * H * D, o), be->rope(o, B, Lq, H, D, pos_a.at(), 10000.0f); }},
+      {"rope_rotate", rows * 2 * 64,
+       [&](Ptr<float> o) { copy_in(o, rows * 2 * 64), be->rope_rotate(o, rows, 2, 64, wa.at(), wa.at(32)); }},
+      {"activate gelu_tanh", rows * n, [&](Ptr<float> o) { copy_in(o, rows * n), be->activate(o, rows * n, Activation::gelu_tanh); }},
+      {"activate silu", rows * n, [&](Ptr<float> o) { copy_in(o, rows * n), be->activate(o, rows * n, Activation::silu); }},
+      {"gated silu", rows * n, [&](Ptr<float> o) { be->gated(xa.at(), rows, n, Activation::silu, o); }},
+      {"add", rows * n, [&](Ptr<float> o) { be->add(xa.at(), xa.at(7), rows * n, o); }},
+      {"scale", rows * n, [&](Ptr<float> o) { copy_in(o, rows * n), be->scale(o, rows * n, 0.3f); }},
+      {"gated_add", rows * n, [&](Ptr<float> o) { copy_in(o, rows * n), be->gated_add(o, xa.at(3), ma.at(), n, rows, n, 4); }},
+      {"copy_rows", rows * 130, [&](Ptr<float> o) { be->copy_rows(xa.at(), n, o, 130, rows, 130); }},
+      {"gather_rows", int64_t(ids.size()) * 96, [&](Ptr<float> o) { be->gather_rows(*table, ids_a.at(), int64_t(ids.size()), 1.5f, o); }},
+      {"patch_embed", 2 * 4 * 24,
+       [&](Ptr<float> o) { be->patch_embed(pixels_a.at(), 2, 3, 28, 28, patch_wa.at(), patch_ba.at(), 24, 14, o); }},
+      {"pixel_shuffle", 2 * 16 * 5, [&](Ptr<float> o) { be->pixel_shuffle(xa.at(), 2, 16, 5, 2, o); }},
+      {"time_embedding", 720, [&](Ptr<float> o) { be->time_embedding(0.37, 720, 4e-3, 4.0, o); }},
+      {"axpy", rows * n, [&](Ptr<float> o) { copy_in(o, rows * n), be->axpy(o, xa.at(1), rows * n, -0.4f); }},
+      {"rtc_guide", 50 * 32,
+       [&](Ptr<float> o) { copy_in(o, 50 * 32), be->rtc_guide(xa.at(), o, xa.at(5), wa.at(), 50, 32, 0.6f, 2.0f); }},
+  };
+  for (const Case& c : cases) {
+    std::vector<float> runs[2];
+    for (auto& result : runs) {
+      const Array<float> out = put(std::vector<float>(std::size_t(c.out_size), kPoison));
+      c.run(out.at());
+      result = get(out);
+    }
+    int64_t unwritten = 0, differing = 0;
+    for (int64_t i = 0; i < c.out_size; ++i) {
+      unwritten += std::isnan(runs[0][i]);
+      differing += std::memcmp(&runs[0][i], &runs[1][i], sizeof(float)) != 0;
+    }
+    EXPECT_EQ(unwritten, 0) << label(c.name) << ": output elements left unwritten (still the poison NaN)";
+    EXPECT_EQ(differing, 0) << label(c.name) << ": two runs differ";
+  }
 }
 
 // Every compiled backend (a CUDA build on a machine without a GPU skips "cuda" with one line), and the CUDA kernels'
