@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # The CUDA backend's device check, in two halves.
 #
-#   scripts/check_cuda.sh --prepare   here (no GPU needed): builds the release preset with the CUDA backend, packs the
+#   scripts/check_cuda.sh --prepare [preset]
+#                                     here (no GPU needed): builds the preset (release by default) with the CUDA backend, packs the
 #                                     binaries and the shared libraries a bare GPU machine lacks into .cuda-check/
 #                                     (xz), and fails if the working tree and the bundle together would not fit the
 #                                     device tool's 64 MiB.
@@ -22,12 +23,13 @@ limit_mib=64
 
 if [ "${1:-}" = "--prepare" ]; then
   set -e
-  scripts/setup.sh release tether test_backend test_parity test_policy
-  grep -q '^TETHER_HAVE_CUDA_BUILD:INTERNAL=ON' build/release/CMakeCache.txt ||
-    { echo "check_cuda --prepare: the release build has no CUDA backend (no nvcc 12.6+ found)" >&2; exit 1; }
+  preset="${2:-release}"
+  scripts/setup.sh "$preset" tether test_backend test_parity test_policy
+  grep -q '^TETHER_HAVE_CUDA_BUILD:INTERNAL=ON' "build/$preset/CMakeCache.txt" ||
+    { echo "check_cuda --prepare: the $preset build has no CUDA backend (no nvcc 12.6+ found)" >&2; exit 1; }
   rm -rf "$bundle" && mkdir -p "$bundle/stage/bin" "$bundle/stage/lib"
-  bins=(build/release/tether build/release/tests/backend/test_backend build/release/tests/policy/test_parity
-        build/release/tests/policy/test_policy)
+  bins=("build/$preset/tether" "build/$preset/tests/backend/test_backend" "build/$preset/tests/policy/test_parity"
+        "build/$preset/tests/policy/test_policy")
   for b in "${bins[@]}"; do strip -o "$bundle/stage/bin/$(basename "$b")" "$b"; done
   # Every shared library the binaries load, except the C library's own (the GPU machine's glibc is newer) and the
   # CUDA libraries, which the machine's CUDA image provides (cuBLASLt alone is 540 MB).
@@ -36,7 +38,7 @@ if [ "${1:-}" = "--prepare" ]; then
     while read -r lib; do cp -L "$lib" "$bundle/stage/lib/"; done
   strip --strip-unneeded "$bundle"/stage/lib/*.so* 2>/dev/null || true
   # Where the tests look for their fixtures (compiled in), so the device side can point that path at its copy.
-  sed -n 's/^CMAKE_HOME_DIRECTORY:INTERNAL=//p' build/release/CMakeCache.txt >"$bundle/stage/source_dir"
+  sed -n 's/^CMAKE_HOME_DIRECTORY:INTERNAL=//p' "build/$preset/CMakeCache.txt" >"$bundle/stage/source_dir"
   tar -C "$bundle/stage" -cf - . | xz -T2 -6 >"$bundle/bundle.tar.xz"
   rm -rf "$bundle/stage"
   tree_bytes=$(git ls-files -z | xargs -0 stat -c %s | awk '{s+=$1} END {print s}')

@@ -14,7 +14,7 @@
 
 #include "backend/cpu/gemm.h"
 #include "backend/cpu/kernels.h"
-#include "backend/cpu/vec_math.h"
+#include "backend/float_math.h"
 #include "core/error.h"
 
 namespace tether::cpu {
@@ -507,9 +507,9 @@ TEST(Activations, DispatchedVariantMatchesScalarStepsBitForBit) {
   const std::size_t n = x.size();
   auto gelu_one = [](float v) {
     const float inner = float(0.79788456080286535588) * (v + 0.044715f * (v * v * v));
-    return 0.5f * v * (1.0f + tether::cpu::detail::tanh_f32(inner));
+    return 0.5f * v * (1.0f + tether::float_math::tanh_f32(inner));
   };
-  auto silu_one = [](float v) { return v / (1.0f + tether::cpu::detail::exp_f32(-v)); };
+  auto silu_one = [](float v) { return v / (1.0f + tether::float_math::exp_f32(-v)); };
   std::vector<float> want_gelu(n), want_gelu_mul(n), want_silu(n), want_silu_mul(n);
   for (std::size_t i = 0; i < n; ++i) {
     want_gelu[i] = gelu_one(x[i]);
@@ -536,7 +536,7 @@ TEST(Activations, DispatchedVariantMatchesScalarStepsBitForBit) {
   float mx = row[0];
   for (float v : row) mx = std::max(mx, v);
   std::vector<float> e(row.size());
-  for (std::size_t i = 0; i < row.size(); ++i) e[i] = tether::cpu::detail::exp_f32(row[i] - mx);
+  for (std::size_t i = 0; i < row.size(); ++i) e[i] = tether::float_math::exp_f32(row[i] - mx);
   float lanes[8] = {};
   for (std::size_t i = 0; i < e.size(); ++i) lanes[i % 8] += e[i];
   const float inv = 1.0f / (((lanes[0] + lanes[1]) + (lanes[2] + lanes[3])) + ((lanes[4] + lanes[5]) + (lanes[6] + lanes[7])));

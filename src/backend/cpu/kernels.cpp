@@ -11,7 +11,7 @@
 #include <vector>
 
 #include "backend/cpu/panel_gemm.h"
-#include "backend/cpu/vec_math.h"
+#include "backend/float_math.h"
 #include "core/dtype.h"
 #include "core/error.h"
 
@@ -21,7 +21,7 @@ namespace {
 // Below this many elements an OpenMP fork costs more than it saves.
 constexpr int64_t kParallelMin = 1 << 15;
 
-// The activations built on the polynomial exp and tanh of vec_math.h are compiled twice, for the build's baseline
+// The activations built on the polynomial exp and tanh of float_math.h are compiled twice, for the build's baseline
 // (x86-64-v3: AVX2, 8 lanes) and for AVX-512 (16 lanes), and chosen under the TETHER_MAX_CPU_ISA cap as the panel
 // GEMM is: GeGLU's tanh ran at half its AVX-512 speed. Each `<name>_span` is written once and inlined into each
 // variant; every lane computes the same float32 steps (no contraction, see CMakeLists), so the variants give
@@ -53,7 +53,7 @@ constexpr float kGeluKappa = 0.044715f;
 [[gnu::always_inline]] inline float gelu_tanh_one(float v) {
   const float cube = v * v * v;
   const float inner = kGeluBeta * (v + kGeluKappa * cube);
-  return 0.5f * v * (1.0f + detail::tanh_f32(inner));
+  return 0.5f * v * (1.0f + float_math::tanh_f32(inner));
 }
 
 [[gnu::always_inline]] inline void gelu_tanh_span(float* x, int64_t begin, int64_t end) {
@@ -68,19 +68,19 @@ constexpr float kGeluKappa = 0.044715f;
 }
 [[gnu::always_inline]] inline void silu_span(float* x, int64_t begin, int64_t end) {
 #pragma omp simd
-  for (int64_t i = begin; i < end; ++i) x[i] = x[i] / (1.0f + detail::exp_f32(-x[i]));
+  for (int64_t i = begin; i < end; ++i) x[i] = x[i] / (1.0f + float_math::exp_f32(-x[i]));
 }
 [[gnu::always_inline]] inline void silu_mul_span(const float* gate, const float* up, float* out, int64_t begin,
                                                  int64_t end) {
 #pragma omp simd
   for (int64_t i = begin; i < end; ++i) {
     const float g = gate[i];
-    out[i] = (g / (1.0f + detail::exp_f32(-g))) * up[i];
+    out[i] = (g / (1.0f + float_math::exp_f32(-g))) * up[i];
   }
 }
 [[gnu::always_inline]] inline void exp_minus_span(float* x, float shift, int64_t n) {
 #pragma omp simd
-  for (int64_t i = 0; i < n; ++i) x[i] = detail::exp_f32(x[i] - shift);
+  for (int64_t i = 0; i < n; ++i) x[i] = float_math::exp_f32(x[i] - shift);
 }
 
 TETHER_ISA_VARIANTS(gelu_tanh, (float* x, int64_t begin, int64_t end), (x, begin, end))

@@ -7,35 +7,15 @@
 
 #include <cmath>
 #include <cstdint>
-#include <cstring>
 
-#if defined(__CUDACC__)
-#define TETHER_HD __host__ __device__ __forceinline__
-#else
-#define TETHER_HD inline
-#endif
+#include "backend/float_math.h"
 
 namespace tether::cuda_math {
 
-TETHER_HD float bits_to_float(uint32_t bits) {
-#if defined(__CUDA_ARCH__)
-  return __uint_as_float(bits);
-#else
-  float f;
-  std::memcpy(&f, &bits, sizeof f);
-  return f;
-#endif
-}
-
-TETHER_HD uint32_t float_to_bits(float f) {
-#if defined(__CUDA_ARCH__)
-  return __float_as_uint(f);
-#else
-  uint32_t bits;
-  std::memcpy(&bits, &f, sizeof bits);
-  return bits;
-#endif
-}
+using float_math::bits_to_float;
+using float_math::exp_f32;
+using float_math::float_to_bits;
+using float_math::tanh_f32;
 
 // bfloat16 storage to float32: the top half of the float's bits.
 TETHER_HD float bf16_bits_to_float(uint16_t h) { return bits_to_float(uint32_t(h) << 16); }
@@ -58,52 +38,6 @@ TETHER_HD float f16_bits_to_float(uint16_t h) {
   // Subnormal: mantissa * 2^-24, exact in float32.
   const float magnitude = float(mantissa) * 5.9604644775390625e-8f;
   return sign ? -magnitude : magnitude;
-}
-
-// exp(x) within about 2 ulp over the float range, branch-free: the CPU backend's polynomial (Cephes' expf
-// coefficients after a Cody-Waite reduction by ln 2), so both backends' activations agree to the bit.
-TETHER_HD float exp_f32(float x) {
-  const float kLo = -87.33654475f;  // ln(FLT_MIN)
-  const float kHi = 88.72283905f;   // ln(FLT_MAX)
-  const float kLog2e = 1.44269504088896341f;
-  const float kLn2Hi = 0.693359375f;
-  const float kLn2Lo = -2.12194440e-4f;
-  float xc = x < kLo ? kLo : x;
-  xc = xc > kHi ? kHi : xc;
-  const float kRound = 12582912.0f;  // 1.5 * 2^23: adding and removing it rounds to an integer
-  const float n = (xc * kLog2e + kRound) - kRound;
-  float r = xc - n * kLn2Hi;
-  r = r - n * kLn2Lo;
-  float p = 1.9875691500e-4f;
-  p = p * r + 1.3981999507e-3f;
-  p = p * r + 8.3334519073e-3f;
-  p = p * r + 4.1665795894e-2f;
-  p = p * r + 1.6666665459e-1f;
-  p = p * r + 5.0000001201e-1f;
-  p = p * (r * r) + r + 1.0f;
-  const int32_t ni = int32_t(n);
-  const int32_t n1 = ni > 127 ? 127 : ni;
-  const float two_n1 = bits_to_float(uint32_t(n1 + 127) << 23);
-  const float extra = ni > 127 ? 2.0f : 1.0f;
-  float result = p * two_n1 * extra;
-  result = x < kLo ? 0.0f : result;
-  result = x > kHi ? bits_to_float(0x7f800000u) : result;
-  return x != x ? x : result;
-}
-
-// tanh(x) within about 2 ulp: an odd polynomial below |x| = 0.625, 1 - 2 / (exp(2|x|) + 1) above.
-TETHER_HD float tanh_f32(float x) {
-  const float ax = x < 0.0f ? -x : x;
-  const float z = x * x;
-  float p = -5.70498872745e-3f;
-  p = p * z + 2.06390887954e-2f;
-  p = p * z - 5.37397155531e-2f;
-  p = p * z + 1.33314422036e-1f;
-  p = p * z - 3.33332819422e-1f;
-  const float small = p * z * x + x;
-  const float big_abs = 1.0f - 2.0f / (exp_f32(2.0f * ax) + 1.0f);
-  const float big = x < 0.0f ? -big_abs : big_abs;
-  return ax < 0.625f ? small : big;
 }
 
 // PyTorch's GELU(approximate="tanh"), each step rounded as its float32 formula is.
