@@ -2,7 +2,7 @@
 # The CUDA backend's device check, in two halves.
 #
 #   scripts/check_cuda.sh --prepare [preset]
-#                                     here (no GPU needed): builds the preset (release by default) with the CUDA backend, packs the
+#                                     here (no GPU needed): builds the preset (cuda-check by default: machine code for sm_90a only) with the CUDA backend, packs the
 #                                     binaries and the shared libraries a bare GPU machine lacks into .cuda-check/
 #                                     (xz), and fails if the working tree and the bundle together would not fit the
 #                                     device tool's 64 MiB.
@@ -23,7 +23,7 @@ limit_mib=64
 
 if [ "${1:-}" = "--prepare" ]; then
   set -e
-  preset="${2:-release}"
+  preset="${2:-cuda-check}"
   scripts/setup.sh "$preset" tether test_backend test_parity test_policy
   grep -q '^TETHER_HAVE_CUDA_BUILD:INTERNAL=ON' "build/$preset/CMakeCache.txt" ||
     { echo "check_cuda --prepare: the $preset build has no CUDA backend (no nvcc 12.6+ found)" >&2; exit 1; }
@@ -69,6 +69,8 @@ print(":".join(sorted({os.path.dirname(p) for r in roots for p in glob.glob(r + 
 PY
 )
 export LD_LIBRARY_PATH="$work/lib:${cuda_libs}:/usr/local/cuda/lib64:${LD_LIBRARY_PATH:-}"
+# Fixtures stored as xz packs in git are expanded here as the build expands them elsewhere (Python's lzma, no build).
+if [ -f scripts/fixture_packs.py ]; then python3 scripts/fixture_packs.py unpack >/dev/null; fi
 bin="$work/bin"
 out="${OUT:-$work/out}"
 mkdir -p "$out"
