@@ -32,6 +32,7 @@ tools/oracle/setup.sh
 python="$cache/oracle/venv/bin/python"
 
 echo "== Isaac-GR00T's StateActionProcessor on the N1.6 fixtures"
+python3 scripts/fixture_packs.py unpack  # the large fixtures are packed in git
 "$python" tools/oracle/isaac_state_action_check.py --isaac "$isaac"
 
 echo "== the Eagle directory's own processor against Tether"

@@ -25,7 +25,9 @@ else
 fi
 cmake --build --preset fuzz --target "${targets[@]}"
 
-# Seeds. libFuzzer reads at most -max_len bytes of each, so a large safetensors file still seeds its header.
+# Seeds. libFuzzer reads at most -max_len bytes of each, so a large safetensors file still seeds its header. The
+# large fixtures are packed in git (this preset builds no tests, which would expand them).
+python3 scripts/fixture_packs.py unpack
 seeds_for() {
   case "$1" in
     fuzz_safetensors_header)

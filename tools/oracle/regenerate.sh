@@ -43,3 +43,5 @@ echo "== GR00T N1.6 fixtures (tiny raw checkpoint, stand-in Eagle directory, blo
 "$here/run.sh" "$here/gr00t_n16_decode_oracle.py"  # GR00T N1.6 relative and mean/std actions (the gr00t_n16 weights and frames)
 echo "== demo policy"
 "$here/run.sh" "$here/smolvla_oracle.py" demo --out "$root/models/demo"
+echo "== large fixtures into tests/fixtures/packed (git stores them compressed; the build expands them)"
+python3 "$root/scripts/fixture_packs.py" pack

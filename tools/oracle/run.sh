@@ -5,6 +5,8 @@ set -euo pipefail
 here="$(cd "$(dirname "${BASH_SOURCE[0]}")" && pwd)"
 cache="${TETHER_CACHE:-$HOME/.cache/tether}"
 "$here/setup.sh"
+# the scripts read and write fixtures as plain files: expand the packed ones (tests/fixtures/packed) first
+python3 "$here/../../scripts/fixture_packs.py" unpack
 script="$1"; shift
 if [[ ! -f "$script" && -f "$here/$script" ]]; then script="$here/$script"; fi
 # nothing may come from a hub: every model file the scripts need is written locally
