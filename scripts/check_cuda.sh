@@ -86,6 +86,14 @@ run_step() {  # name, timeout seconds, command...: ok on exit 0, the log's last 
 
 row "GPU" info "$(nvidia-smi --query-gpu=name,driver_version,memory.total --format=csv,noheader 2>&1 | head -1)"
 run_step "tether doctor" 60 "$bin/tether" doctor
+# Everything below needs the backend on this device: a skip would read as a pass, so a skipped op test ends the check.
+gate=$("$bin/test_backend" --gtest_filter='*ConstantsReadAsUploaded/cuda' 2>&1)
+if grep -q 'skipped:' <<<"$gate" || ! grep -q '\[  PASSED  \] 1 test' <<<"$gate"; then
+  row "cuda backend usable" FAIL "$(grep -m1 'skipped:' <<<"$gate" | sed 's/.*skipped: //' | cut -c1-100)"
+  echo "check_cuda: table in $table"
+  exit 1
+fi
+row "cuda backend usable" ok "constants round-trip through the device"
 run_step "op tests on cuda vs float64" 120 "$bin/test_backend" --gtest_filter='*BackendOps*/cuda'
 run_step "op tests on cuda, second run" 120 "$bin/test_backend" --gtest_filter='*BackendOps*/cuda'
 ops_rel() { grep -h 'rel|diff| ] cuda ' "$out"/op_tests_on_cuda*.log | sort | uniq | wc -l; }
