@@ -25,6 +25,7 @@ struct BenchArgs {
   std::string checkpoint;
   ObservationArgs observation;
   std::string precision = "fp32";
+  std::string backend = "cpu";
   std::string embodiment_tag;
   int iterations = 100, warmup = 5, batch = 1;
   bool json = false;
@@ -95,7 +96,7 @@ int run_bench(const BenchArgs& a) {
   if (!std::isfinite(a.adaptive_threshold))
     throw Error(ErrorCode::invalid_argument, "--adaptive-threshold must be a finite number >= 0");
   const auto t0 = std::chrono::steady_clock::now();
-  auto policy = policy::Policy::load(a.checkpoint, load_options(a.precision, a.embodiment_tag));
+  auto policy = policy::Policy::load(a.checkpoint, load_options(a.precision, a.embodiment_tag, a.backend));
   const double load_ms = std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - t0).count();
   const policy::Observation obs = a.observation.build(*policy);
   const std::vector<policy::Observation> batch(std::size_t(a.batch), obs);
@@ -206,6 +207,7 @@ Verb add_bench(CLI::App& app) {
       ->check(CLI::NonNegativeNumber);
   args->observation.add_to(sub, /*required=*/false);
   add_precision_flag(sub, args->precision);
+  add_backend_flag(sub, args->backend);
   add_embodiment_tag_flag(sub, args->embodiment_tag);
   return {sub, [args] { return run_bench(*args); }};
 }

@@ -1,5 +1,6 @@
 // `tether doctor`: what this machine offers Tether, each check with a one-line remediation when it fails.
 // CUDA libraries are probed with dlopen, so doctor runs (and says so) on machines without them.
+#include <algorithm>
 #include <sys/statvfs.h>
 #include <unistd.h>
 
@@ -12,6 +13,7 @@
 #include <cpuid.h>
 #endif
 
+#include "backend/backend.h"
 #include "backend/cpu/cpu_features.h"
 #include "backend/cpu/gemm.h"
 #include "backend/cpu/packed_linear.h"
@@ -156,9 +158,22 @@ void cuda_checks(std::vector<Check>& out) {
       out.push_back({"cuda", "GPU " + std::to_string(i),
                      supported_compute_capability(g.cc_major, g.cc_minor) ? Status::ok : Status::warn,
                      g.name + ", compute capability " + std::to_string(g.cc_major) + "." + std::to_string(g.cc_minor) +
-                         (g.memory_bytes > 0 ? ", " + gb(double(g.memory_bytes)) : ""),
+                         (g.memory_bytes > 0 ? ", " + gb(double(g.memory_bytes)) : "") +
+                         (g.free_bytes >= 0 ? " (" + gb(double(g.free_bytes)) + " free)" : ""),
                      "this GPU's compute capability is outside the supported table (8.0+); the CPU backend still works"});
     }
+  }
+  {
+    // Whether this binary can run a model on the GPU: the backend compiled in, and a device it has code for.
+    const auto compiled = backend::compiled_backends();
+    const bool built = std::find(compiled.begin(), compiled.end(), "cuda") != compiled.end();
+    std::string why;
+    const bool usable = backend::backend_usable("cuda", &why);
+    // A warning only where there is a GPU the backend cannot use; on a machine without one it is just skipped.
+    out.push_back({"cuda", "backend", usable ? Status::ok : built && !gpu.devices.empty() ? Status::warn : Status::skip,
+                   usable ? "compiled in and usable: --backend cuda (or auto) runs models on the GPU" : why,
+                   built ? "a GPU with a driver is needed for --backend cuda; the CPU backend still works"
+                         : "build with the CUDA toolkit (nvcc 12.6 or newer) for the GPU backend"});
   }
   const CudaLibraries libs = probe_cuda_libraries();
   const auto library_check = [&](const std::string& name, const CudaLibrary& lib, const std::string& soname,

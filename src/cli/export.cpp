@@ -27,6 +27,7 @@ namespace {
 
 struct ExportArgs {
   std::string source, out, precision = "fp32", target, embodiment, custom_embodiment, embodiment_tag;
+  std::string backend = "cpu";  // where the export's verification runs
 };
 
 // The source as a directory: a checkpoint directory, or a registry id whose checkpoint is on disk.
@@ -80,9 +81,9 @@ std::string table(const std::vector<CaseDiff>& diffs) {
 
 double export_checkpoint(const std::string& src, const std::string& out_dir, const std::string& precision,
                          const std::string& target_id, const std::string& embodiment_file,
-                         const std::string& embodiment_tag) {
+                         const std::string& embodiment_tag, const std::string& backend) {
   const ExportArgs a{src, out_dir, precision, target_id, "", "", embodiment_tag};
-  const models::LoadOptions source_options = load_options("fp32", embodiment_tag);
+  const models::LoadOptions source_options = load_options("fp32", embodiment_tag, backend);
   // Validated before anything is written; its joint count is checked against the model once it is loaded.
   const std::optional<policy::Embodiment> embodiment =
       embodiment_file.empty() ? std::nullopt : std::optional(policy::load_embodiment_file(embodiment_file));
@@ -197,7 +198,7 @@ int run_export(const ExportArgs& a) {
   const std::string embodiment = !a.custom_embodiment.empty() ? a.custom_embodiment
                                  : a.embodiment.empty()       ? std::string()
                                                               : embodiment_preset_file(a.embodiment);
-  const double worst = export_checkpoint(src, a.out, a.precision, a.target, embodiment, a.embodiment_tag);
+  const double worst = export_checkpoint(src, a.out, a.precision, a.target, embodiment, a.embodiment_tag, a.backend);
   std::printf("exported %s -> %s (%s); max |diff| against the source %.3e; receipt: %s\n", src.c_str(), a.out.c_str(),
               a.precision.c_str(), worst, (fs::path(a.out) / "VERIFICATION.md").string().c_str());
   return kExitOk;
@@ -217,6 +218,7 @@ Verb add_export(CLI::App& app) {
   sub->add_option("--embodiment", args->embodiment, "Embodiment preset the export carries (franka, so100, ur5, quadcopter)");
   sub->add_option("--custom-embodiment-config", args->custom_embodiment, "Embodiment JSON file the export carries");
   add_embodiment_tag_flag(sub, args->embodiment_tag);
+  add_backend_flag(sub, args->backend);
   return {sub, [args] { return run_export(*args); }};
 }
 

@@ -64,6 +64,7 @@ Verb add_go(CLI::App& app) {
     ServeFlags flags;
   };
   auto args = std::make_shared<Args>();
+  args->flags.backend = "auto";  // the GPU when there is a usable one
   CLI::App* sub = app.add_subcommand(
       "go", "Probe this machine, pull the model if missing, export it (cached per Tether version) and serve it");
   sub->add_option("--model", args->model, "Registry id, e.g. smolvla-demo or smolvla-base");

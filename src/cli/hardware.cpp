@@ -1,6 +1,7 @@
 // Machine probes (CPU, memory, CUDA driver and libraries through dlopen) and the choices `tether go` makes from them.
 #include "cli/hardware.h"
 
+#include "backend/backend.h"
 #include "backend/cpu/cpu_features.h"
 
 #include <dlfcn.h>
@@ -53,6 +54,15 @@ GpuProbe probe_gpus() {
   auto attr = symbol<AttrFn>(cuda, "cuDeviceGetAttribute");
   auto dev_name = symbol<NameFn>(cuda, "cuDeviceGetName");
   auto total_mem = symbol<MemFn>(cuda, "cuDeviceTotalMem_v2");
+  // Free memory needs a context: the device's primary one, retained and released around the query.
+  using RetainFn = int (*)(void**, int);
+  using ReleaseFn = int (*)(int);
+  using SetCurrentFn = int (*)(void*);
+  using MemInfoFn = int (*)(std::size_t*, std::size_t*);
+  auto retain = symbol<RetainFn>(cuda, "cuDevicePrimaryCtxRetain");
+  auto release = symbol<ReleaseFn>(cuda, "cuDevicePrimaryCtxRelease_v2");
+  auto set_current = symbol<SetCurrentFn>(cuda, "cuCtxSetCurrent");
+  auto mem_info = symbol<MemInfoFn>(cuda, "cuMemGetInfo_v2");
   if (!init || !version || init(0) != 0 || version(&p.driver_version) != 0) return p;
   p.driver_ok = true;
   int n = 0;
@@ -68,6 +78,12 @@ GpuProbe probe_gpus() {
     attr(&g.cc_minor, 76, dev);  // ..._MINOR
     std::size_t bytes = 0;
     if (total_mem && total_mem(&bytes, dev) == 0) g.memory_bytes = int64_t(bytes);
+    if (void* ctx = nullptr; retain && release && set_current && mem_info && retain(&ctx, dev) == 0) {
+      std::size_t free_now = 0, total = 0;
+      if (set_current(ctx) == 0 && mem_info(&free_now, &total) == 0) g.free_bytes = int64_t(free_now);
+      set_current(nullptr);
+      release(dev);
+    }
     p.devices.push_back(std::move(g));
   }
   return p;
@@ -155,7 +171,9 @@ std::string gpu_summary(const GpuProbe& p) {
     s += (i ? ", " : "") + g.name + " (compute " + std::to_string(g.cc_major) + "." + std::to_string(g.cc_minor) + mem +
          (supported_compute_capability(g.cc_major, g.cc_minor) ? "" : ", below the supported 8.0") + ")";
   }
-  return s + " \u2014 the CUDA backend is not part of this build; serving on CPU";
+  std::string why;
+  if (backend::backend_usable("cuda", &why)) return s + " \u2014 the CUDA backend serves on it";
+  return s + " \u2014 " + why + "; serving on CPU";
 }
 
 std::string cpu_summary(const MachineProbe& m) {

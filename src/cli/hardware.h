@@ -14,6 +14,7 @@ struct GpuDevice {
   std::string name;
   int cc_major = 0, cc_minor = 0;  // compute capability
   int64_t memory_bytes = 0;
+  int64_t free_bytes = -1;  // -1: not read (no context could be made)
 };
 
 struct GpuProbe {

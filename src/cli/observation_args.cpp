@@ -3,6 +3,7 @@
 
 #include <sstream>
 
+#include "backend/backend.h"
 #include "core/safetensors.h"
 
 namespace tether::cli {
@@ -37,14 +38,27 @@ void add_embodiment_tag_flag(CLI::App* sub, std::string& value) {
                   "default: the checkpoint's only one");
 }
 
-models::LoadOptions load_options(const std::string& precision, const std::string& embodiment_tag) {
+void add_backend_flag(CLI::App* sub, std::string& value) {
+  sub->add_option("--backend", value,
+                  "Where the model runs: cpu, cuda (an NVIDIA GPU; fails with exit code 2 where there is none) or "
+                  "auto (cuda when this build has it and a GPU is usable, else cpu)")
+      ->check(CLI::IsMember({"cpu", "cuda", "auto"}))
+      ->capture_default_str();
+}
+
+models::LoadOptions load_options(const std::string& precision, const std::string& embodiment_tag,
+                                 const std::string& backend) {
   models::LoadOptions o;
   o.precision = cpu::parse_precision(precision);
   o.embodiment = embodiment_tag;
+  // Checked before the model loads, so a missing GPU costs one line, not a load.
+  if (std::string why; !backend::backend_usable(backend, &why)) throw Error(ErrorCode::invalid_argument, why);
+  o.backend = backend::make_backend(backend);
   return o;
 }
 
 std::string inference_mode(const models::ModelSpec& spec) {
+  if (spec.backend != "cpu") return spec.backend + "-" + cpu::precision_name(spec.precision);
   return std::string("cpu-") + cpu::compute_mode(spec.precision);
 }
 

@@ -16,13 +16,14 @@ struct PredictArgs {
   std::string checkpoint;
   ObservationArgs observation;
   std::string precision = "fp32";
+  std::string backend = "cpu";
   std::string embodiment_tag;
   bool json = false;
 };
 
 int run_predict(const PredictArgs& a) {
   const auto t0 = std::chrono::steady_clock::now();
-  auto policy = policy::Policy::load(a.checkpoint, load_options(a.precision, a.embodiment_tag));
+  auto policy = policy::Policy::load(a.checkpoint, load_options(a.precision, a.embodiment_tag, a.backend));
   const double load_ms = std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - t0).count();
   for (const auto& w : policy->load_warnings()) std::cerr << "warning: " << w << "\n";
   const auto& spec = policy->spec();
@@ -70,6 +71,7 @@ Verb add_predict(CLI::App& app) {
   sub->add_option("checkpoint", args->checkpoint, "Checkpoint directory")->required();
   args->observation.add_to(sub, /*required=*/true);
   add_precision_flag(sub, args->precision);
+  add_backend_flag(sub, args->backend);
   add_embodiment_tag_flag(sub, args->embodiment_tag);
   sub->add_flag("--json", args->json, "Print JSON instead of a table");
   return {sub, [args] { return run_predict(*args); }};

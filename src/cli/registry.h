@@ -72,7 +72,7 @@ std::string pull_model(const RegistryEntry& entry, const std::string& revision =
 // its statistics and loads without naming it.
 double export_checkpoint(const std::string& src, const std::string& out, const std::string& precision,
                          const std::string& target, const std::string& embodiment_file = "",
-                         const std::string& embodiment_tag = "");
+                         const std::string& embodiment_tag = "", const std::string& backend = "cpu");
 
 // Prints the registry as a table (or JSON): id, family, source, parameters, support, local presence, headline
 // published figure, license.

@@ -63,6 +63,7 @@ void add_serve_flags(CLI::App* sub, ServeFlags& f) {
   sub->add_option("--threads", o.threads, "I/O threads (inference has its own)")->capture_default_str()
       ->check(CLI::Range(1, 256));
   add_precision_flag(sub, f.precision);
+  add_backend_flag(sub, f.backend);
   sub->add_option("--embodiment-tag", f.embodiment_tags,
                   "Embodiment served, for checkpoints trained on several (GR00T: a tag of its embodiment_id.json). "
                   "Repeat it (or separate tags by commas) to serve several from one copy of the weights: the first "
@@ -261,7 +262,7 @@ int run_server(const std::string& checkpoint_dir, const ServeFlags& flags) {
   options.api_key = read_api_key(flags);
   std::vector<serve::HostLoader> hosts;
   for (const std::string& tag : flags.embodiment_tags.empty() ? std::vector<std::string>{""} : flags.embodiment_tags) {
-    const models::LoadOptions load = load_options(flags.precision, tag);
+    const models::LoadOptions load = load_options(flags.precision, tag, flags.backend);
     // Each robot's own embodiment and safety files (TAG=... entries), else the shared ones.
     hosts.push_back({tag, [checkpoint_dir, load] { return serve::load_policy_engine(checkpoint_dir, load); },
                      wedge_options(flags, checkpoint_dir, tag)});

@@ -18,6 +18,7 @@ struct ServeFlags {
   serve::ServerOptions options;
   std::string api_key_file;
   std::string precision = "fp32";
+  std::string backend = "cpu";  // --backend; `tether go` starts from auto
   // GR00T: the embodiments served (--embodiment-tag, repeatable or comma-separated); the first is the default, a
   // request names another by its tag. Empty: the checkpoint's only one.
   std::vector<std::string> embodiment_tags;

@@ -20,6 +20,7 @@ namespace {
 struct ValidateArgs {
   std::string export_dir, reference, output_json, init_ci;
   double threshold = 1e-4;
+  std::string backend = "cpu";
 };
 
 int write_ci(const ValidateArgs& a, const std::string& reference) {
@@ -80,7 +81,7 @@ int run_validate(const ValidateArgs& a) {
   // reference failing to load (its tokenizer no longer in the hub cache, say) is told apart from the export's failure.
   // An export of one embodiment of a multi-embodiment checkpoint (GR00T) is compared on that embodiment.
   const Json tag = manifest.value("embodiment_tag", Json(nullptr));
-  const models::LoadOptions options = load_options("fp32", tag.is_string() ? tag.get<std::string>() : "");
+  const models::LoadOptions options = load_options("fp32", tag.is_string() ? tag.get<std::string>() : "", a.backend);
   std::unique_ptr<policy::Policy> ref;
   try {
     ref = policy::Policy::load(reference, options);
@@ -124,6 +125,7 @@ Verb add_validate(CLI::App& app) {
   exp->add_option("--reference", args->reference, "Reference checkpoint (default: the export's recorded source)");
   exp->add_option("--threshold", args->threshold, "Largest max |diff| (robot units) that passes")->capture_default_str();
   exp->add_option("--output-json", args->output_json, "Also write the results as JSON");
+  add_backend_flag(exp, args->backend);
   exp->add_option("--init-ci", args->init_ci, "Write a CI workflow running this check to the given path, e.g. .github/workflows/tether-validate.yml");
   return {sub, [args] { return run_validate(*args); }};
 }

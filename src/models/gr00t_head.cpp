@@ -455,6 +455,7 @@ void Gr00tModel::fill_spec(const FamilyDescriptor& family, const std::string& to
                            const std::string& where) {
   ModelSpec& s = shared_spec_;
   s.family = family.name;
+  s.backend = be_->name();
   s.stages = family.stages;
   s.missing_camera_rule = family.missing_camera_rule;
   s.tokenizer = tokenizer_kind_name(family.tokenizer);

@@ -78,6 +78,7 @@ struct ModelSpec {
   int64_t image_height = 0, image_width = 0;  // what the vision tower receives
   std::string weights_dtype;                   // as stored in the checkpoint
   cpu::Precision precision = cpu::Precision::fp32;  // what the linear layers compute in
+  std::string backend = "cpu";                      // the backend it runs on (Backend::name(): "cpu", "cuda")
   // The embodiment served, for checkpoints trained on several (GR00T: a tag of embodiment_id.json); empty otherwise.
   std::string embodiment;
   // The checkpoint's own modality config for that embodiment ({video, state, action, language}, as GR00T's

@@ -287,6 +287,7 @@ PiZero::PiZero(const fs::path& dir, const Json& config, TensorStore store, const
   const cpu::Precision precision = options.precision;
   spec_.precision = precision;
   be_ = options.backend ? options.backend : backend::make_default_backend();
+  spec_.backend = be_->name();
   backend::Backend& be = *be_;
   const std::string where = (dir / "config.json").string();
   const FamilyDescriptor& family = pz_.family ? *pz_.family : pi05 ? pi05_family() : pi0_family();

@@ -123,6 +123,7 @@ SmolVLA::SmolVLA(const fs::path& dir, const Json& config, TensorStore weights, c
   const cpu::Precision precision = options.precision;
   spec_.precision = precision;
   be_ = options.backend ? options.backend : backend::make_default_backend();
+  spec_.backend = be_->name();
   backend::Backend& be = *be_;
   const std::string where = (dir / "config.json").string();
   const FamilyDescriptor& family = smolvla_family();

@@ -24,9 +24,10 @@ Engine load_policy_engine(const std::string& checkpoint_dir, const models::LoadO
   for (const auto& line : p->output_normalizer().describe())  // lerobot's pre-processor may list the action too
     if (std::find(e.normalization.begin(), e.normalization.end(), line) == e.normalization.end())
       e.normalization.push_back(line);
-  e.gemm = cpu::gemm_name(p->spec().precision);
+  e.backend = p->spec().backend;
+  e.gemm = e.backend == "cpu" ? cpu::gemm_name(p->spec().precision) : "cublaslt";
   e.precision = cpu::precision_name(p->spec().precision);
-  e.compute = cpu::compute_mode(p->spec().precision);
+  e.compute = e.backend == "cpu" ? cpu::compute_mode(p->spec().precision) : cpu::precision_name(p->spec().precision);
   e.model_hash = models::weights_hash(checkpoint_dir, p->weight_files());
   e.model_name = checkpoint_name(checkpoint_dir);
   const std::string state_key = p->spec().state_key;
