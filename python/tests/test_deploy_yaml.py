@@ -129,7 +129,7 @@ def test_chart_defaults():
     c = container(dep)
     assert c["image"] == "ghcr.io/example/tether:0.1.0"
     assert c["args"] == ["go", "--model=smolvla-demo", "--host=0.0.0.0", "--port=8000", "--max-batch=8",
-                         "--batch-timeout-ms=5"]
+                         "--batch-timeout-ms=0"]
     assert c["readinessProbe"]["httpGet"] == {"path": "/health", "port": "http"}
     assert c["livenessProbe"]["httpGet"] == {"path": "/live", "port": "http"}
     assert c["startupProbe"]["httpGet"]["path"] == "/live" and c["startupProbe"]["failureThreshold"] == 180

@@ -388,7 +388,7 @@ def test_config_fields(server):
     assert isinstance(cfg["weights_dtype"], str) and cfg["weights_dtype"]
     assert cfg["model_hash"] == model_hash()
     limits = cfg["limits"]
-    defaults = {"max_batch": 8, "batch_timeout_ms": 5, "max_queue": 64, "max_body_bytes": 16777216}
+    defaults = {"max_batch": 8, "batch_timeout_ms": 0, "max_queue": 64, "max_body_bytes": 16777216}
     for name, value in defaults.items():
         assert limits[name] == value, (name, limits)
 

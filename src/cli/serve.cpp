@@ -42,7 +42,7 @@ void add_serve_flags(CLI::App* sub, ServeFlags& f) {
                   "File holding the API key /act and /config require (else env TETHER_API_KEY; unset: open)");
   sub->add_option("--max-batch", o.batch.max_batch, "Most requests sharing one forward pass")
       ->capture_default_str()->check(CLI::Range(1, 1024));
-  sub->add_option("--batch-timeout-ms", o.batch.batch_timeout_ms, "How long a request waits for others to batch with")
+  sub->add_option("--batch-timeout-ms", o.batch.batch_timeout_ms, "0: continuous batching (a pass starts as soon as the engine is free); above 0: how long a request waits for others to batch with")
       ->capture_default_str()->check(CLI::Range(0.0, 10000.0));
   sub->add_option("--max-queue", o.batch.max_queue, "Requests waiting beyond this: 503 queue_full")
       ->capture_default_str()->check(CLI::Range(1, 1000000));

@@ -1,5 +1,5 @@
-// The batching worker: wait for a first request, gather more until the window closes or the batch is full, run
-// one forward pass, hand each request its row.
+// The batching worker: wait for a first request, take everything queued (up to max_batch; with an explicit window,
+// first gather until it closes or the batch is full), run one forward pass, hand each request its row.
 #include "runtime/batcher.h"
 
 #include <algorithm>
@@ -104,11 +104,15 @@ void Batcher::run() {
       std::unique_lock lock(mu_);
       cv_.wait(lock, [&] { return stopping_ || !queue_.empty(); });
       if (queue_.empty()) return;  // stopping, and everything queued has run
-      // The window opens when the oldest waiting request arrived, so a request that queued behind a long forward
-      // pass does not wait again. While stopping, run what is there without waiting for company.
-      const auto close_at = queue_.front().enqueued + window;
-      cv_.wait_until(lock, close_at,
-                     [&] { return stopping_ || int(queue_.size()) >= options_.max_batch; });
+      // Continuous batching (no window): start now with whatever is queued, so a lone request on an idle worker
+      // runs at once and the requests that arrived during the previous pass share this one. An explicit window opens
+      // when the oldest waiting request arrived, so a request that queued behind a long forward pass does not wait
+      // again. While stopping, run what is there without waiting for company.
+      if (window > Clock::duration::zero()) {
+        const auto close_at = queue_.front().enqueued + window;
+        cv_.wait_until(lock, close_at,
+                       [&] { return stopping_ || int(queue_.size()) >= options_.max_batch; });
+      }
       const std::size_t n = std::min(queue_.size(), std::size_t(options_.max_batch));
       batch.reserve(n);
       for (std::size_t i = 0; i < n; ++i) {

@@ -1,5 +1,6 @@
-// Continuous-batching scheduler in front of a Policy: concurrent requests are gathered for a short window and run
-// through one forward pass; a single worker thread owns the policy (Policy::predict is not thread-safe).
+// Continuous-batching scheduler in front of a Policy: an idle worker starts a forward pass as soon as a request
+// arrives; requests arriving while a pass runs queue and all go into the next one (up to max_batch). A single worker
+// thread owns the policy (Policy::predict is not thread-safe).
 #pragma once
 
 #include <chrono>
@@ -21,7 +22,10 @@ using Clock = std::chrono::steady_clock;
 
 struct BatcherOptions {
   int max_batch = 8;              // most observations in one forward pass
-  double batch_timeout_ms = 5.0;  // how long the first request of a batch waits for company
+  // 0 (continuous batching): a pass starts as soon as the worker is free, with whatever is queued. Above 0: an
+  // explicit gathering window; a pass waits until the oldest queued request has waited this long or max_batch are
+  // queued, trading a lone request's latency for fuller batches.
+  double batch_timeout_ms = 0.0;
   int max_queue = 64;             // requests waiting (not yet in a forward pass); beyond it submit fails at once
 };
 
